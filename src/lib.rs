@@ -1,0 +1,20 @@
+//! colf — Compositional Object Light Fields.
+//!
+//! One photo of a scene → a set of object slots, each a small latent code conditioning its own
+//! neural light field; slots are edited as data and rendered from any camera with a single
+//! network evaluation per ray per object. See `README.md` and `../shared/DESIGN.md`.
+//!
+//! The modules each do one job:
+//! - [`io`]: stdin/stdout, atomic output files, terminal refusal.
+//! - [`cli`]: command-line definitions of every stage (man pages are generated from them).
+//! - [`camera`]: `transforms.json` and uORF cameras, rays, Plücker coordinates.
+//! - [`codes`]: the slot codes safetensors file.
+//! - [`edit`]: the JSON edit language of `colf-edit`.
+//! - [`tensorfile`]: deterministic safetensors writing, checked reading.
+
+pub mod camera;
+pub mod cli;
+pub mod codes;
+pub mod edit;
+pub mod io;
+pub mod tensorfile;
