@@ -206,7 +206,11 @@ pub fn validate_rigid(m: &DMat4, what: &str, tolerance: f64) -> Result<()> {
         bail!("{what}: matrix has a non-finite entry");
     }
     let last_row = m.row(3);
-    if (last_row - DVec4::new(0.0, 0.0, 0.0, 1.0)).abs().max_element() > tolerance {
+    if (last_row - DVec4::new(0.0, 0.0, 0.0, 1.0))
+        .abs()
+        .max_element()
+        > tolerance
+    {
         bail!("{what}: last row must be [0, 0, 0, 1], got {last_row:?}");
     }
     let r = DMat3::from_mat4(*m);
@@ -423,7 +427,10 @@ impl Cameras {
 
     /// `transforms.json` text. Intrinsics shared by every frame go to the top level.
     pub fn to_json(&self) -> String {
-        let first = self.frames.first().map(|f| OutIntrinsics::from(f.intrinsics));
+        let first = self
+            .frames
+            .first()
+            .map(|f| OutIntrinsics::from(f.intrinsics));
         let shared = first.filter(|k| {
             self.frames
                 .iter()
@@ -578,17 +585,47 @@ mod tests {
     #[test]
     fn rejects_bad_cameras_with_clear_messages() {
         let cases = [
-            (r#"{"w":64,"h":64,"fl_x":0,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "focal length"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "orthonormal"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,1]]}]}"#, "singular"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[-1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "reflection"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "row 0 has 3"),
-            (r#"{"w":64000000,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "image size"),
-            (r#"{"w":64,"h":64,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#, "missing focal"),
+            (
+                r#"{"w":64,"h":64,"fl_x":0,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "focal length",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "orthonormal",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[0,0,0,0],[0,0,0,0],[0,0,0,0],[0,0,0,1]]}]}"#,
+                "singular",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[-1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "reflection",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "row 0 has 3",
+            ),
+            (
+                r#"{"w":64000000,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "image size",
+            ),
+            (
+                r#"{"w":64,"h":64,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#,
+                "missing focal",
+            ),
             (r#"{"w":64,"h":64,"fl_x":50,"frames":[]}"#, "empty"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{}]}"#, "missing `transform_matrix`"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,1,1]]}]}"#, "last row"),
-            (r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":"x"}]}"#, "invalid JSON"),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{}]}"#,
+                "missing `transform_matrix`",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,1,1]]}]}"#,
+                "last row",
+            ),
+            (
+                r#"{"w":64,"h":64,"fl_x":50,"frames":[{"transform_matrix":"x"}]}"#,
+                "invalid JSON",
+            ),
             (r#"[1, 2"#, "invalid JSON"),
         ];
         for (text, expected) in cases {
@@ -612,7 +649,10 @@ mod tests {
         };
         let centre = frame.ray_at(32.0, 32.0);
         assert!((centre.direction - DVec3::NEG_Z).length() < 1e-12);
-        assert!(frame.pixel_ray(0, 0).direction.y > 0.0, "row 0 must look up");
+        assert!(
+            frame.pixel_ray(0, 0).direction.y > 0.0,
+            "row 0 must look up"
+        );
         assert!(Cameras::uorf_pose_from_text("1 2 x", "rt").is_err());
     }
 }

@@ -55,7 +55,9 @@ impl Codes {
         let file = TensorFile::parse(bytes, name)?;
         let format = file.require_metadata("format")?;
         if format != CODES_FORMAT {
-            bail!("{name}: format is `{format}`, expected `{CODES_FORMAT}` (not a colf codes file?)");
+            bail!(
+                "{name}: format is `{format}`, expected `{CODES_FORMAT}` (not a colf codes file?)"
+            );
         }
         let model = file.require_metadata("model")?.to_string();
         let (bg_shape, background) = file.f32_tensor("background", &[None])?;
@@ -165,7 +167,11 @@ impl Codes {
         let frames: Vec<f32> = self
             .slots
             .iter()
-            .flat_map(|s| crate::camera::matrix_rows(&s.slot_to_world).into_iter().flatten())
+            .flat_map(|s| {
+                crate::camera::matrix_rows(&s.slot_to_world)
+                    .into_iter()
+                    .flatten()
+            })
             .map(|v| v as f32)
             .collect();
         let masses: Vec<f32> = self.slots.iter().map(|s| s.mass).collect();

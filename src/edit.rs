@@ -20,7 +20,10 @@ pub enum Selection {
 #[derive(Clone, Debug, PartialEq)]
 pub enum Op {
     /// Move slots by a world-space vector.
-    Translate { slots: Selection, by: DVec3 },
+    Translate {
+        slots: Selection,
+        by: DVec3,
+    },
     /// Rotate slots about `axis` through `pivot` (world space).
     Rotate {
         slots: Selection,
@@ -28,16 +31,30 @@ pub enum Op {
         degrees: f64,
         pivot: DVec3,
     },
-    Delete { slots: Selection },
-    Keep { slots: Selection },
+    Delete {
+        slots: Selection,
+    },
+    Keep {
+        slots: Selection,
+    },
     /// Append copies of slots, moved by `by`.
-    Duplicate { slots: Selection, by: DVec3 },
+    Duplicate {
+        slots: Selection,
+        by: DVec3,
+    },
     /// Append slots of another codes file, in their own frames.
-    Merge { from: String, slots: Selection },
+    Merge {
+        from: String,
+        slots: Selection,
+    },
     /// Replace the background latent with another file's.
-    Background { from: String },
+    Background {
+        from: String,
+    },
     /// Drop slots whose attention mass is below `min_mass`.
-    Prune { min_mass: f64 },
+    Prune {
+        min_mass: f64,
+    },
 }
 
 impl Op {
@@ -368,8 +385,7 @@ pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
 pub fn apply_edits(codes: &Codes, ops: &[Op], name: &str) -> Result<Codes> {
     let mut edited = codes.clone();
     for (i, op) in ops.iter().enumerate() {
-        apply_op(&mut edited, op)
-            .map_err(|e| anyhow!("{name}: op {i} ({}): {e:#}", op.name()))?;
+        apply_op(&mut edited, op).map_err(|e| anyhow!("{name}: op {i} ({}): {e:#}", op.name()))?;
     }
     Ok(edited)
 }
@@ -411,10 +427,7 @@ mod tests {
     }
 
     fn err(text: &str) -> String {
-        format!(
-            "{:#}",
-            parse_edits(text.as_bytes(), "e.json").unwrap_err()
-        )
+        format!("{:#}", parse_edits(text.as_bytes(), "e.json").unwrap_err())
     }
 
     fn origin(codes: &Codes, i: usize) -> DVec3 {
@@ -442,11 +455,21 @@ mod tests {
     #[test]
     fn delete_keep_duplicate_prune_and_all() {
         let codes = sample(4); // masses 0, .1, .2, .3
-        let e = apply_edits(&codes, &ops(r#"{"ops":[{"op":"delete","slots":[0,2]}]}"#), "e")
-            .unwrap();
-        assert_eq!(e.slots, vec![codes.slots[1].clone(), codes.slots[3].clone()]);
+        let e = apply_edits(
+            &codes,
+            &ops(r#"{"ops":[{"op":"delete","slots":[0,2]}]}"#),
+            "e",
+        )
+        .unwrap();
+        assert_eq!(
+            e.slots,
+            vec![codes.slots[1].clone(), codes.slots[3].clone()]
+        );
         let e = apply_edits(&codes, &ops(r#"[{"op":"keep","slots":[3,1]}]"#), "e").unwrap();
-        assert_eq!(e.slots, vec![codes.slots[1].clone(), codes.slots[3].clone()]);
+        assert_eq!(
+            e.slots,
+            vec![codes.slots[1].clone(), codes.slots[3].clone()]
+        );
         let e = apply_edits(
             &codes,
             &ops(r#"[{"op":"duplicate","slots":[1],"by":[0,2,0]}]"#),
@@ -460,7 +483,9 @@ mod tests {
         assert_eq!(e.slots.len(), 2);
         let e = apply_edits(
             &codes,
-            &ops(r#"[{"op":"translate","slots":"all","by":[0,0,1]}, {"op":"delete","slots":"all"}]"#),
+            &ops(
+                r#"[{"op":"translate","slots":"all","by":[0,0,1]}, {"op":"delete","slots":"all"}]"#,
+            ),
             "e",
         )
         .unwrap();
@@ -483,16 +508,46 @@ mod tests {
     #[test]
     fn parse_errors_name_the_op_and_field() {
         let cases = [
-            (r#"[{"op":"translate","slots":[0]}]"#, "e.json: op 0 (translate): field `by` is missing"),
-            (r#"[{"op":"translate","slots":[0],"by":[1,2]}]"#, "op 0 (translate): field `by`: expected an array of 3"),
-            (r#"[{"op":"delete","slots":[0]},{"op":"spin"}]"#, "op 1: field `op`: unknown op `spin`"),
-            (r#"[{"op":"rotate","slots":[0],"axis":[0,0,0],"degrees":3}]"#, "op 0 (rotate): field `axis`"),
-            (r#"[{"op":"rotate","slots":[0],"axis":[0,0,1],"degrees":"x"}]"#, "op 0 (rotate): field `degrees`"),
-            (r#"[{"op":"delete","slots":[-1]}]"#, "op 0 (delete): field `slots`"),
-            (r#"[{"op":"delete","slots":"some"}]"#, "op 0 (delete): field `slots`"),
-            (r#"[{"op":"delete","slot":[1]}]"#, "op 0 (delete): unknown field `slot`"),
-            (r#"[{"op":"prune","min_mass":2}]"#, "op 0 (prune): field `min_mass`"),
-            (r#"[{"op":"merge","slots":[0]}]"#, "op 0 (merge): field `from` is missing"),
+            (
+                r#"[{"op":"translate","slots":[0]}]"#,
+                "e.json: op 0 (translate): field `by` is missing",
+            ),
+            (
+                r#"[{"op":"translate","slots":[0],"by":[1,2]}]"#,
+                "op 0 (translate): field `by`: expected an array of 3",
+            ),
+            (
+                r#"[{"op":"delete","slots":[0]},{"op":"spin"}]"#,
+                "op 1: field `op`: unknown op `spin`",
+            ),
+            (
+                r#"[{"op":"rotate","slots":[0],"axis":[0,0,0],"degrees":3}]"#,
+                "op 0 (rotate): field `axis`",
+            ),
+            (
+                r#"[{"op":"rotate","slots":[0],"axis":[0,0,1],"degrees":"x"}]"#,
+                "op 0 (rotate): field `degrees`",
+            ),
+            (
+                r#"[{"op":"delete","slots":[-1]}]"#,
+                "op 0 (delete): field `slots`",
+            ),
+            (
+                r#"[{"op":"delete","slots":"some"}]"#,
+                "op 0 (delete): field `slots`",
+            ),
+            (
+                r#"[{"op":"delete","slot":[1]}]"#,
+                "op 0 (delete): unknown field `slot`",
+            ),
+            (
+                r#"[{"op":"prune","min_mass":2}]"#,
+                "op 0 (prune): field `min_mass`",
+            ),
+            (
+                r#"[{"op":"merge","slots":[0]}]"#,
+                "op 0 (merge): field `from` is missing",
+            ),
             (r#"[3]"#, "op 0: expected an object"),
             (r#"{"opz": []}"#, "unknown top-level field `opz`"),
             (r#"{"ops": 3}"#, "`ops` to be an array"),
@@ -514,7 +569,10 @@ mod tests {
         )
         .unwrap_err();
         let msg = format!("{e:#}");
-        assert!(msg.starts_with("e.json: op 1 (translate): field `slots`: slot 1 does not exist"), "{msg}");
+        assert!(
+            msg.starts_with("e.json: op 1 (translate): field `slots`: slot 1 does not exist"),
+            "{msg}"
+        );
     }
 
     #[test]
@@ -537,7 +595,13 @@ mod tests {
         // Another model's codes are refused.
         other.model = "someone-else".into();
         std::fs::write(&other_path, other.to_bytes().unwrap()).unwrap();
-        let msg = format!("{:#}", apply_edits(&sample(1), &ops(&text), "e").unwrap_err());
-        assert!(msg.contains("op 0 (merge)") && msg.contains("someone-else"), "{msg}");
+        let msg = format!(
+            "{:#}",
+            apply_edits(&sample(1), &ops(&text), "e").unwrap_err()
+        );
+        assert!(
+            msg.contains("op 0 (merge)") && msg.contains("someone-else"),
+            "{msg}"
+        );
     }
 }

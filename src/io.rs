@@ -50,7 +50,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut tmp = tempfile::Builder::new()
         .prefix(".colf-tmp-")
         .tempfile_in(dir)
-        .with_context(|| format!("{shown}: cannot create a temporary file in {}", dir.display()))?;
+        .with_context(|| {
+            format!(
+                "{shown}: cannot create a temporary file in {}",
+                dir.display()
+            )
+        })?;
     tmp.write_all(bytes)
         .and_then(|_| tmp.as_file().sync_all())
         .with_context(|| format!("{shown}: write failed"))?;

@@ -8,11 +8,13 @@
 //! - [`io`]: stdin/stdout, atomic output files, terminal refusal.
 //! - [`cli`]: command-line definitions of every stage (man pages are generated from them).
 //! - [`camera`]: `transforms.json` and uORF cameras, rays, Plücker coordinates.
+//! - [`camera_path`]: orbits and dollies for novel-view renders.
 //! - [`codes`]: the slot codes safetensors file.
 //! - [`edit`]: the JSON edit language of `colf-edit`.
 //! - [`tensorfile`]: deterministic safetensors writing, checked reading.
 
 pub mod camera;
+pub mod camera_path;
 pub mod cli;
 pub mod codes;
 pub mod edit;

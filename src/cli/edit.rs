@@ -15,14 +15,14 @@ use clap::Parser;
     long_about = "Apply a JSON list of edit ops to a codes file (from colf-encode) and write the \
 edited codes. Ops run in order; slot indices refer to the slots as they stand when the op runs; \
 \"slots\": \"all\" selects every slot; vectors are world units, angles degrees.\n\n\
-EDITS is {\"ops\": [...]} or a bare array of ops:\n\
-  {\"op\": \"translate\", \"slots\": [2], \"by\": [1, 0, 0]}\n\
-  {\"op\": \"rotate\", \"slots\": [1], \"axis\": [0, 0, 1], \"degrees\": 90, \"pivot\": [0, 0, 0]}\n\
-  {\"op\": \"delete\", \"slots\": [4]}\n\
-  {\"op\": \"keep\", \"slots\": [0, 1]}\n\
-  {\"op\": \"duplicate\", \"slots\": [1], \"by\": [0, 2, 0]}\n\
-  {\"op\": \"merge\", \"from\": \"other.codes.safetensors\", \"slots\": [0, 2]}\n\
-  {\"op\": \"background\", \"from\": \"other.codes.safetensors\"}\n\
+EDITS is {\"ops\": [...]} or a bare array of ops:\n\n\
+  {\"op\": \"translate\", \"slots\": [2], \"by\": [1, 0, 0]}\n\n\
+  {\"op\": \"rotate\", \"slots\": [1], \"axis\": [0, 0, 1], \"degrees\": 90, \"pivot\": [0, 0, 0]}\n\n\
+  {\"op\": \"delete\", \"slots\": [4]}\n\n\
+  {\"op\": \"keep\", \"slots\": [0, 1]}\n\n\
+  {\"op\": \"duplicate\", \"slots\": [1], \"by\": [0, 2, 0]}\n\n\
+  {\"op\": \"merge\", \"from\": \"other.codes.safetensors\", \"slots\": [0, 2]}\n\n\
+  {\"op\": \"background\", \"from\": \"other.codes.safetensors\"}\n\n\
   {\"op\": \"prune\", \"min_mass\": 0.02}\n\n\
 translate and rotate left-multiply each slot's slot_to_world by the world-space transform \
 (rotate turns about `axis` through `pivot`, default the origin); duplicate appends moved copies; \

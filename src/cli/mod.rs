@@ -2,7 +2,10 @@
 //! project's conventions (one error line, exit codes 0/1/2). The man pages in `man/` are
 //! generated from these definitions (`tests/man_pages.rs`), so they cannot drift from `--help`.
 
+pub mod cameras;
 pub mod edit;
+pub mod encode;
+pub mod render;
 
 /// Runs the body of stage `colf-<stage>`: exit 0 on success; on error, one line
 /// `colf-<stage>: error: <cause chain>` on stderr and exit 1. Usage errors are clap's (exit 2).
@@ -21,5 +24,10 @@ pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
 /// Every stage's clap command, by binary name: the man pages are generated from this list.
 pub fn commands() -> Vec<clap::Command> {
     use clap::CommandFactory;
-    vec![edit::EditArgs::command()]
+    vec![
+        encode::EncodeArgs::command(),
+        edit::EditArgs::command(),
+        render::RenderArgs::command(),
+        cameras::CamerasArgs::command(),
+    ]
 }

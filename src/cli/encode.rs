@@ -1,0 +1,61 @@
+//! `colf-encode`: one image → object slots (a codes file).
+
+use clap::Parser;
+
+/// Encode one image into object slots.
+#[derive(Parser, Debug)]
+#[command(
+    name = "colf-encode",
+    version,
+    about = "Encode one image into object slots (a colf codes file)",
+    long_about = "Find the objects in one image without labels: the encoder and background-aware \
+slot attention of the model turn IMAGE into K foreground slot latents and one background latent, \
+written as a codes file (safetensors; see colf-edit(1) and the README for its contract).\n\n\
+The image (PNG, any size; `-` for stdin) is resized to the model's encoder input. With \
+--camera, every slot's slot_to_world is set to that frame's camera-to-world, so slots live in \
+world space and can be moved and merged with slots of other scenes; without it the identity is \
+used (the camera frame of the image is the world). --slots sets the number of foreground slots \
+(any K >= 0; default: the model's). --prune drops slots that took less than MASS of the \
+attention, so a scene keeps only the slots it needs. The slot noise is drawn from a seeded \
+generator: the same input, model, options and --seed give byte-identical output.\n\n\
+The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
+    after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
+colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect"
+)]
+pub struct EncodeArgs {
+    /// Input image, PNG (`-`: stdin).
+    #[arg(value_name = "IMAGE")]
+    pub image: String,
+
+    /// transforms.json holding the camera of IMAGE (sets slot_to_world).
+    #[arg(long, value_name = "CAMERAS.json")]
+    pub camera: Option<String>,
+
+    /// Which frame of --camera is IMAGE's camera.
+    #[arg(long, default_value_t = 0, value_name = "N", requires = "camera")]
+    pub frame: usize,
+
+    /// Number of foreground slots (default: the model's).
+    #[arg(long, value_name = "K")]
+    pub slots: Option<usize>,
+
+    /// Drop slots whose attention mass is below MASS (in [0, 1]).
+    #[arg(long, value_name = "MASS")]
+    pub prune: Option<f64>,
+
+    /// Seed of the slot noise.
+    #[arg(long, default_value_t = 0, value_name = "S")]
+    pub seed: u64,
+
+    /// Model file (default: $COLF_MODEL, else the bundled default model).
+    #[arg(long, value_name = "M")]
+    pub model: Option<String>,
+
+    /// Name recorded as each slot's source (default: the image's file name).
+    #[arg(long, value_name = "NAME")]
+    pub source: Option<String>,
+
+    /// Where to write the codes (`-`: stdout, the default; refused on a terminal).
+    #[arg(short, long, default_value = "-", value_name = "OUT")]
+    pub output: String,
+}
