@@ -66,7 +66,7 @@ pub fn orbit(
     if !(radius.is_finite() && radius > 0.0) {
         bail!("radius {radius} must be a positive number");
     }
-    if !(elevation_deg.abs() < 90.0) {
+    if elevation_deg.is_nan() || elevation_deg.abs() >= 90.0 {
         bail!("elevation {elevation_deg} must be strictly between -90 and 90 degrees");
     }
     if !center.is_finite() || !start_azimuth_deg.is_finite() {

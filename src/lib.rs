@@ -19,4 +19,5 @@ pub mod cli;
 pub mod codes;
 pub mod edit;
 pub mod io;
+pub mod render_output;
 pub mod tensorfile;
