@@ -11,13 +11,21 @@
 //! - [`camera_path`]: orbits and dollies for novel-view renders.
 //! - [`codes`]: the slot codes safetensors file.
 //! - [`edit`]: the JSON edit language of `colf-edit`.
+//! - [`image_io`]: PNG reading (RGB in [0, 1], mask labels) and deterministic PNG writing.
+//! - [`metrics`]: PSNR, SSIM, ARI, FG-ARI exactly as uORF / scikit-image / scikit-learn.
 //! - [`tensorfile`]: deterministic safetensors writing, checked reading.
 
 pub mod camera;
 pub mod camera_path;
 pub mod cli;
 pub mod codes;
+pub mod dataset;
 pub mod edit;
+pub mod image_io;
 pub mod io;
+pub mod metrics;
+pub mod model;
 pub mod render_output;
+pub mod synth;
 pub mod tensorfile;
+pub mod train;

@@ -5,7 +5,10 @@
 pub mod cameras;
 pub mod edit;
 pub mod encode;
+pub mod eval;
 pub mod render;
+pub mod synth;
+pub mod train;
 
 /// Runs the body of stage `colf-<stage>`: exit 0 on success; on error, one line
 /// `colf-<stage>: error: <cause chain>` on stderr and exit 1. Usage errors are clap's (exit 2).
@@ -29,5 +32,6 @@ pub fn commands() -> Vec<clap::Command> {
         edit::EditArgs::command(),
         render::RenderArgs::command(),
         cameras::CamerasArgs::command(),
+        eval::EvalArgs::command(),
     ]
 }

@@ -1,0 +1,7 @@
+use clap::Parser;
+use colf::cli::eval::{run, EvalArgs};
+
+fn main() {
+    let args = EvalArgs::parse();
+    colf::cli::run("eval", || run(&args))
+}

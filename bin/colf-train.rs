@@ -1,0 +1,13 @@
+use clap::Parser;
+use colf::cli::train::{TrainArgs, TrainCommand};
+
+fn main() {
+    let args = TrainArgs::parse();
+    colf::cli::run("train", || match &args.command {
+        TrainCommand::Init(init) => {
+            let summary = colf::model::init_model_file(&init.preset, init.seed, &init.output)?;
+            eprintln!("colf-train: {summary}");
+            Ok(())
+        }
+    })
+}

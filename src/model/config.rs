@@ -1,0 +1,221 @@
+//! Model sizes and knobs. A `Config` is stored (as JSON) inside every checkpoint, so a model file
+//! is self-describing; `small` trains on a 2-core CPU, `paper` follows the COLF supplement §1.
+
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+/// Every size and knob of a COLF model. Unknown keys are refused when a checkpoint is read, so
+/// a file written by a newer colf with new knobs is reported instead of silently misread.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Name of the preset this config started from (informational).
+    pub preset: String,
+    /// Side of the square image the encoder sees; inputs are resized to it.
+    pub encoder_size: usize,
+    /// Stride of the encoder's first conv layer: 1 follows the supplement (tokens at full
+    /// encoder resolution), 2 halves the token grid (the `small` preset: 64² input → 32² tokens).
+    pub encoder_first_stride: usize,
+    /// Channels of the first (full-resolution) conv layer.
+    pub encoder_channels: usize,
+    /// Channels of the downsampled conv layers.
+    pub encoder_channels_low: usize,
+    /// Channels of the feature grid the slots attend to.
+    pub feature_dim: usize,
+    /// Slot latent size D.
+    pub slot_dim: usize,
+    /// Slot-attention iterations.
+    pub slot_iters: usize,
+    /// Hidden width of the slots' residual MLPs.
+    pub slot_mlp_hidden: usize,
+    /// Foreground slots K used when the caller does not choose.
+    pub default_slots: usize,
+    /// Hidden width of every light-field MLP.
+    pub lfn_hidden: usize,
+    /// Number of hidden layers of every light-field MLP.
+    pub lfn_hidden_layers: usize,
+    /// Size of the ray feature a light field outputs.
+    pub lfn_features: usize,
+    /// Fourier frequencies per ray coordinate (0: the raw 6-D Plücker ray is the input).
+    pub ray_fourier_freqs: usize,
+    /// Hidden width of the hypernetworks (one hidden layer).
+    pub hypernet_hidden: usize,
+    /// Hidden width of the colour and ordering heads.
+    pub head_hidden: usize,
+    /// Hidden layers of the colour and ordering heads.
+    pub head_hidden_layers: usize,
+    /// Hidden width of the compositor MLP V.
+    pub compositor_hidden: usize,
+    /// Hidden layers of the compositor MLP V.
+    pub compositor_hidden_layers: usize,
+    /// World length that maps to 1 in the networks' inputs: Plücker moments are divided by it
+    /// (then smoothly bounded), ordering values are produced in these units.
+    pub scene_scale: f64,
+}
+
+impl Config {
+    /// The CPU-trainable preset (≈ 3 M parameters).
+    pub fn small() -> Config {
+        Config {
+            preset: "small".into(),
+            encoder_size: 64,
+            encoder_first_stride: 2,
+            encoder_channels: 32,
+            encoder_channels_low: 64,
+            feature_dim: 64,
+            slot_dim: 64,
+            slot_iters: 3,
+            slot_mlp_hidden: 128,
+            default_slots: 7,
+            lfn_hidden: 128,
+            lfn_hidden_layers: 2,
+            lfn_features: 32,
+            ray_fourier_freqs: 0,
+            hypernet_hidden: 64,
+            head_hidden: 64,
+            head_hidden_layers: 1,
+            compositor_hidden: 32,
+            compositor_hidden_layers: 1,
+            scene_scale: 8.0,
+        }
+    }
+
+    /// The sizes of the COLF supplement §1: encoder at 128², slot dim 128, light fields with
+    /// 2 hidden layers of 256 → 64 features, heads and compositor with 3 hidden layers of 128,
+    /// hypernetworks with 1 hidden layer (width 128, not stated in the paper).
+    pub fn paper() -> Config {
+        Config {
+            preset: "paper".into(),
+            encoder_size: 128,
+            encoder_first_stride: 1,
+            encoder_channels: 64,
+            encoder_channels_low: 64,
+            feature_dim: 64,
+            slot_dim: 128,
+            slot_iters: 3,
+            slot_mlp_hidden: 128,
+            default_slots: 7,
+            lfn_hidden: 256,
+            lfn_hidden_layers: 2,
+            lfn_features: 64,
+            ray_fourier_freqs: 0,
+            hypernet_hidden: 128,
+            head_hidden: 128,
+            head_hidden_layers: 3,
+            compositor_hidden: 128,
+            compositor_hidden_layers: 3,
+            scene_scale: 8.0,
+        }
+    }
+
+    /// A preset by name.
+    pub fn preset(name: &str) -> Result<Config> {
+        match name {
+            "small" => Ok(Config::small()),
+            "paper" => Ok(Config::paper()),
+            other => bail!("unknown preset `{other}` (known: small, paper)"),
+        }
+    }
+
+    /// Parses and validates a config stored in a checkpoint.
+    pub fn from_json(text: &str) -> Result<Config> {
+        let cfg: Config = serde_json::from_str(text).context("invalid model config")?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// The config as compact JSON (field order fixed by the struct, so it is deterministic).
+    pub fn to_json(&self) -> String {
+        serde_json::to_string(self).expect("config serialises")
+    }
+
+    /// Checks that every size is usable.
+    pub fn validate(&self) -> Result<()> {
+        let positive = [
+            ("encoder_size", self.encoder_size),
+            ("encoder_channels", self.encoder_channels),
+            ("encoder_channels_low", self.encoder_channels_low),
+            ("feature_dim", self.feature_dim),
+            ("slot_dim", self.slot_dim),
+            ("slot_iters", self.slot_iters),
+            ("slot_mlp_hidden", self.slot_mlp_hidden),
+            ("lfn_hidden", self.lfn_hidden),
+            ("lfn_features", self.lfn_features),
+            ("hypernet_hidden", self.hypernet_hidden),
+            ("head_hidden", self.head_hidden),
+            ("compositor_hidden", self.compositor_hidden),
+        ];
+        for (name, value) in positive {
+            if value == 0 {
+                bail!("model config: `{name}` must be positive");
+            }
+        }
+        if !matches!(self.encoder_first_stride, 1 | 2) {
+            bail!("model config: `encoder_first_stride` must be 1 or 2");
+        }
+        let grid = self.encoder_size / self.encoder_first_stride;
+        if self.encoder_size % (4 * self.encoder_first_stride) != 0 || grid < 4 {
+            bail!(
+                "model config: `encoder_size` {} must be a multiple of {} (two stride-2 layers)",
+                self.encoder_size,
+                4 * self.encoder_first_stride
+            );
+        }
+        if self.encoder_size > 1024 || self.ray_fourier_freqs > 16 || self.lfn_hidden_layers > 16 {
+            bail!("model config: a size is implausibly large");
+        }
+        if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
+            bail!("model config: `scene_scale` must be a positive number");
+        }
+        Ok(())
+    }
+
+    /// Side of the token grid (tokens = grid²).
+    pub fn token_grid(&self) -> usize {
+        self.encoder_size / self.encoder_first_stride
+    }
+
+    /// Input size of a light field: 6 Plücker coordinates, plus sin/cos per frequency.
+    pub fn ray_input_dim(&self) -> usize {
+        6 * (1 + 2 * self.ray_fourier_freqs)
+    }
+
+    /// Layer widths of a light-field MLP, input first.
+    pub fn lfn_dims(&self) -> Vec<usize> {
+        let mut dims = vec![self.ray_input_dim()];
+        dims.extend(std::iter::repeat_n(self.lfn_hidden, self.lfn_hidden_layers));
+        dims.push(self.lfn_features);
+        dims
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_validate_and_round_trip() {
+        for cfg in [Config::small(), Config::paper()] {
+            cfg.validate().unwrap();
+            assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
+        }
+        assert_eq!(Config::small().lfn_dims(), vec![6, 128, 128, 32]);
+        assert_eq!(Config::paper().lfn_dims(), vec![6, 256, 256, 64]);
+        assert_eq!(Config::small().token_grid(), 32);
+    }
+
+    #[test]
+    fn bad_configs_are_refused() {
+        let mut cfg = Config::small();
+        cfg.encoder_size = 66;
+        assert!(cfg.validate().is_err());
+        let mut cfg = Config::small();
+        cfg.scene_scale = f64::NAN;
+        assert!(cfg.validate().is_err());
+        let json = Config::small()
+            .to_json()
+            .replace("\"slot_dim\"", "\"mystery\":1,\"slot_dim\"");
+        assert!(Config::from_json(&json).is_err());
+        assert!(Config::preset("huge").is_err());
+    }
+}

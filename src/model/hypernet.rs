@@ -1,0 +1,100 @@
+//! Hypernetworks: a slot latent → every weight and bias of that slot's light-field MLP
+//! (COLF supplement §1.2: an MLP with one hidden layer). Foreground and background have separate
+//! hypernetworks.
+//!
+//! Structure: `fc1` (D → H, ReLU) shared by all outputs, then for each light-field layer l with
+//! fan-in `i` and fan-out `o` two linear heads: `layers.{l}.weight` (H → i·o, reshaped to the
+//! layer's [i, o] weight, laid out for `x [S, R, i] · W [S, i, o]`) and `layers.{l}.bias`
+//! (H → o). Tensor names (prefix `hypernet_fg.` / `hypernet_bg.`): `fc1.{weight,bias}`,
+//! `layers.{l}.weight.{weight,bias}`, `layers.{l}.bias.{weight,bias}`.
+//!
+//! Initialisation: the generated weights should have a Kaiming-like scale whatever the latent.
+//! Each generated weight is `A·h + c`; `c` (the head's bias) is drawn uniformly with variance
+//! ¾·σ², and `A` uniformly so that `A·h` has variance ¼·σ² for hidden activations h of a
+//! unit-variance latent (E[h²] ≈ 1/6 after fc1's default init and the ReLU), where
+//! σ = gain/√fan_in is the Kaiming std of that layer (gain √2 before a ReLU, 1 on the last).
+
+use super::config::Config;
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{linear, Init, Linear, VarBuilder};
+
+/// One light-field layer's generated parameters for S slots: weight [S, in, out], bias
+/// [S, 1, out].
+#[derive(Clone, Debug)]
+pub struct GeneratedLayer {
+    pub weight: Tensor,
+    pub bias: Tensor,
+}
+
+#[derive(Clone, Debug)]
+struct LayerHeads {
+    weight: Linear,
+    bias: Linear,
+    fan_in: usize,
+    fan_out: usize,
+}
+
+/// A hypernetwork for light fields of widths `cfg.lfn_dims()`.
+#[derive(Clone, Debug)]
+pub struct HyperNet {
+    fc1: Linear,
+    layers: Vec<LayerHeads>,
+}
+
+fn head(inp: usize, out: usize, a: f64, c: f64, vb: VarBuilder) -> Result<Linear> {
+    let weight = vb.get_with_hints((out, inp), "weight", Init::Uniform { lo: -a, up: a })?;
+    let bias = vb.get_with_hints(out, "bias", Init::Uniform { lo: -c, up: c })?;
+    Ok(Linear::new(weight, Some(bias)))
+}
+
+impl HyperNet {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<HyperNet> {
+        let h = cfg.hypernet_hidden;
+        let dims = cfg.lfn_dims();
+        let fc1 = linear(cfg.slot_dim, h, vb.pp("fc1"))?;
+        let mut layers = Vec::new();
+        for l in 0..dims.len() - 1 {
+            let (fan_in, fan_out) = (dims[l], dims[l + 1]);
+            let last = l + 2 == dims.len();
+            let gain = if last { 1.0 } else { 2f64.sqrt() };
+            let sigma = gain / (fan_in as f64).sqrt();
+            // Var(A·h) = H·a²/3·E[h²] with E[h²] ≈ 1/6 → a = √(4.5/H)·σ gives ¼σ².
+            let a = (4.5 / h as f64).sqrt() * sigma;
+            // Var(U(−c, c)) = c²/3 = ¾σ² → c = 1.5σ.
+            let c = 1.5 * sigma;
+            let vb_l = vb.pp(format!("layers.{l}"));
+            layers.push(LayerHeads {
+                weight: head(h, fan_in * fan_out, a, c, vb_l.pp("weight"))?,
+                // Generated biases: small, latent-dependent, around zero.
+                bias: head(
+                    h,
+                    fan_out,
+                    0.5 * a,
+                    0.5 / (fan_in as f64).sqrt(),
+                    vb_l.pp("bias"),
+                )?,
+                fan_in,
+                fan_out,
+            });
+        }
+        Ok(HyperNet { fc1, layers })
+    }
+
+    /// latents [S, D] → the S light fields' layers.
+    pub fn forward(&self, latents: &Tensor) -> Result<Vec<GeneratedLayer>> {
+        let s = latents.dim(0)?;
+        let hidden = self.fc1.forward(latents)?.relu()?;
+        self.layers
+            .iter()
+            .map(|l| {
+                Ok(GeneratedLayer {
+                    weight: l
+                        .weight
+                        .forward(&hidden)?
+                        .reshape((s, l.fan_in, l.fan_out))?,
+                    bias: l.bias.forward(&hidden)?.reshape((s, 1, l.fan_out))?,
+                })
+            })
+            .collect()
+    }
+}

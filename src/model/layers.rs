@@ -1,0 +1,68 @@
+//! Small building blocks shared by the modules, written only with ops that have a backward
+//! (CANDLE-NOTES: the fused layer norm records no gradient).
+
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{linear, Linear, VarBuilder};
+
+/// Layer normalisation over the last axis with a learned scale and shift, built from plain ops
+/// (`candle_nn::ops::layer_norm_slow`) so gradients reach the input, `weight` and `bias`.
+#[derive(Clone, Debug)]
+pub struct LayerNormSlow {
+    weight: Tensor,
+    bias: Tensor,
+}
+
+impl LayerNormSlow {
+    /// Parameters `{vb}.weight` (ones) and `{vb}.bias` (zeros), both [dim].
+    pub fn new(dim: usize, vb: VarBuilder) -> Result<LayerNormSlow> {
+        Ok(LayerNormSlow {
+            weight: vb.get_with_hints(dim, "weight", candle_nn::init::ONE)?,
+            bias: vb.get_with_hints(dim, "bias", candle_nn::init::ZERO)?,
+        })
+    }
+}
+
+impl Module for LayerNormSlow {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        candle_nn::ops::layer_norm_slow(x, &self.weight, &self.bias, 1e-5)
+    }
+}
+
+/// An MLP: `hidden_layers` ReLU layers of width `hidden`, then a linear output layer.
+/// Parameters `{vb}.layers.{i}.weight` [out, in] and `.bias` [out], i = 0 … hidden_layers.
+#[derive(Clone, Debug)]
+pub struct Mlp {
+    layers: Vec<Linear>,
+}
+
+impl Mlp {
+    pub fn new(
+        input: usize,
+        hidden: usize,
+        hidden_layers: usize,
+        output: usize,
+        vb: VarBuilder,
+    ) -> Result<Mlp> {
+        let mut layers = Vec::with_capacity(hidden_layers + 1);
+        let mut width = input;
+        for i in 0..=hidden_layers {
+            let out = if i == hidden_layers { output } else { hidden };
+            layers.push(linear(width, out, vb.pp(format!("layers.{i}")))?);
+            width = out;
+        }
+        Ok(Mlp { layers })
+    }
+}
+
+impl Module for Mlp {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let mut x = x.clone();
+        for (i, layer) in self.layers.iter().enumerate() {
+            x = layer.forward(&x)?;
+            if i + 1 < self.layers.len() {
+                x = x.relu()?;
+            }
+        }
+        Ok(x)
+    }
+}

@@ -1,0 +1,564 @@
+//! The COLF model in candle: encoder → background-aware slot attention → per-slot hypernetwork
+//! light fields → colour/ordering heads → compositor. See `docs/model.md` for the tensor names,
+//! the checkpoint format and the design choices.
+//!
+//! Two levels:
+//! - [`ColfModel`]: the module tree on tensors (differentiable; used by training).
+//! - [`Colf`]: a loaded model with the host-side API that `colf-encode`/`colf-render` use:
+//!   [`Colf::encode`] an image into slot latents, [`Colf::prepare`] slots (hypernetworks run
+//!   once per slot) and [`Colf::render_rays`] any number of world rays in bounded-memory chunks.
+
+pub mod checkpoint;
+pub mod compositor;
+pub mod config;
+pub mod encoder;
+pub mod heads;
+pub mod hypernet;
+pub mod init;
+pub mod layers;
+pub mod light_field;
+pub mod rays;
+pub mod slot_attention;
+
+pub use config::Config;
+pub use light_field::SlotWeights;
+pub use rays::{RayBatch, SceneRays};
+pub use slot_attention::SlotOutput;
+
+use anyhow::{anyhow, bail, Context, Result};
+use candle_core::{DType, Device, Tensor, Var};
+use candle_nn::{VarBuilder, VarMap};
+use glam::{DMat4, DVec3};
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// The differentiable model. Parameters live under `encoder.`, `slot_attention.`,
+/// `hypernet_fg.`, `hypernet_bg.`, `heads.` and `compositor.`.
+#[derive(Clone, Debug)]
+pub struct ColfModel {
+    pub cfg: Config,
+    pub encoder: encoder::Encoder,
+    pub slot_attention: slot_attention::SlotAttention,
+    pub hypernet_fg: hypernet::HyperNet,
+    pub hypernet_bg: hypernet::HyperNet,
+    pub heads: heads::Heads,
+    pub compositor: compositor::Compositor,
+}
+
+/// What [`ColfModel::decode`] returns.
+#[derive(Clone, Debug)]
+pub struct Decoded {
+    /// Composited colour [B, R, 3].
+    pub rgb: Tensor,
+    /// Compositor weights [B, R, S], S = 1 + K, index 0 = background.
+    pub weights: Tensor,
+    /// Each field's colour [B, R, S, 3].
+    pub colors: Tensor,
+    /// World-comparable ordering values minus the per-ray `RayBatch::base` [B, R, S].
+    pub ordering: Tensor,
+}
+
+impl ColfModel {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<ColfModel> {
+        Ok(ColfModel {
+            cfg: cfg.clone(),
+            encoder: encoder::Encoder::new(cfg, vb.pp("encoder"))?,
+            slot_attention: slot_attention::SlotAttention::new(cfg, vb.pp("slot_attention"))?,
+            hypernet_fg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_fg"))?,
+            hypernet_bg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_bg"))?,
+            heads: heads::Heads::new(cfg, vb.pp("heads"))?,
+            compositor: compositor::Compositor::new(cfg, vb.pp("compositor"))?,
+        })
+    }
+
+    /// images [B, 3, S, S] (S = `encoder_size`, values in [0, 1]) → K foreground slots and the
+    /// background slot; the slot noise comes from `rng`.
+    pub fn encode(
+        &self,
+        images: &Tensor,
+        k: usize,
+        rng: &mut StdRng,
+    ) -> candle_core::Result<SlotOutput> {
+        let tokens = self.encoder.forward(images)?;
+        self.slot_attention.forward(&tokens, k, rng)
+    }
+
+    /// Runs the hypernetworks once: fg [B, K, D], bg [B, D] → the B·(1 + K) light fields,
+    /// scene-major, background first in each scene.
+    pub fn prepare(&self, fg: &Tensor, bg: &Tensor) -> candle_core::Result<SlotWeights> {
+        let (b, k, d) = fg.dims3()?;
+        let bg_w = SlotWeights {
+            layers: self.hypernet_bg.forward(bg)?,
+        };
+        if k == 0 {
+            return Ok(bg_w);
+        }
+        let fg_w = SlotWeights {
+            layers: self.hypernet_fg.forward(&fg.reshape((b * k, d))?)?,
+        };
+        SlotWeights::join_scenes(&bg_w, Some(&fg_w), b, k)
+    }
+
+    /// Evaluates prepared light fields on encoded rays and composites them.
+    pub fn decode(&self, fields: &SlotWeights, rays: &RayBatch) -> candle_core::Result<Decoded> {
+        let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
+        if fields.num_fields()? != b * s {
+            candle_core::bail!(
+                "{} prepared light fields for {} scenes × {} fields of rays",
+                fields.num_fields()?,
+                b,
+                s
+            );
+        }
+        let features = fields.forward(&rays.coords)?; // [B·S, R, F]
+        let (color, ordering) = self.heads.forward(&features)?;
+        let colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]
+        let ordering = ordering.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
+        let comp = self
+            .compositor
+            .forward(&ordering.contiguous()?, &rays.shift)?;
+        let rgb = comp.weights.unsqueeze(3)?.broadcast_mul(&colors)?.sum(2)?;
+        Ok(Decoded {
+            rgb,
+            weights: comp.weights,
+            colors,
+            ordering: comp.ordering,
+        })
+    }
+}
+
+/// Slot latents of one encoded image.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Encoded {
+    /// K foreground latents of size D.
+    pub fg_latents: Vec<Vec<f32>>,
+    /// The background latent (D).
+    pub bg_latent: Vec<f32>,
+    /// Each foreground slot's share of the image's attention, in [0, 1].
+    pub slot_mass: Vec<f32>,
+}
+
+/// Light fields ready to render: the hypernetworks' outputs for one background and K foreground
+/// slots, reusable for any number of rays, views and chunks.
+#[derive(Clone, Debug)]
+pub struct PreparedSlots {
+    fields: SlotWeights,
+    num_fg: usize,
+}
+
+impl PreparedSlots {
+    /// Number of foreground slots K.
+    pub fn num_fg(&self) -> usize {
+        self.num_fg
+    }
+}
+
+/// Per-ray render results, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RayOutput {
+    /// Composited colour, R×3, in [0, 1].
+    pub rgb: Vec<f32>,
+    /// Compositor weights R×(1 + K); column 0 is the background, column k + 1 slot k.
+    pub weights: Vec<f32>,
+    /// World-comparable ordering values R×(1 + K) (≈ distance along the ray from its origin,
+    /// up to the model's learned offset), same columns.
+    pub ordering: Vec<f32>,
+    /// 1 + K.
+    pub fields: usize,
+}
+
+/// A loaded model.
+pub struct Colf {
+    model: ColfModel,
+    /// Every parameter by name (for a trainable model, the tensors of its `Var`s).
+    params: BTreeMap<String, Tensor>,
+    vars: Option<VarMap>,
+    identity: String,
+    device: Device,
+}
+
+/// Activation budget of one render chunk: S·rays·width floats ≤ this (64 MiB per tensor).
+const CHUNK_FLOATS: usize = 1 << 24;
+
+impl Colf {
+    /// A freshly initialised model; every tensor drawn from a `StdRng` seeded by (seed, name).
+    pub fn init(cfg: &Config, seed: u64) -> Result<Colf> {
+        cfg.validate()?;
+        let device = Device::Cpu;
+        let backend = std::sync::Arc::new(init::SeededInit::new(seed));
+        let vb = VarBuilder::from_backend(
+            Box::new(SharedBackend(backend.clone())),
+            DType::F32,
+            device.clone(),
+        );
+        let model = ColfModel::new(cfg, vb).context("building the model")?;
+        let params = backend.tensors();
+        let identity = checkpoint::identity(&cfg.to_json(), &checkpoint::to_host(&params)?);
+        Ok(Colf {
+            model,
+            params,
+            vars: None,
+            identity,
+            device,
+        })
+    }
+
+    /// Reads a model file (`name` is used in errors).
+    pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Colf> {
+        let ckpt = checkpoint::from_bytes(bytes, name)?;
+        let device = Device::Cpu;
+        let checked = std::sync::Arc::new(init::CheckedTensors::new(ckpt.tensors.clone()));
+        let vb = VarBuilder::from_backend(
+            Box::new(SharedBackend(checked.clone())),
+            DType::F32,
+            device.clone(),
+        );
+        let built = ColfModel::new(&ckpt.config, vb);
+        let problems = checked.problems();
+        if let Some(first) = problems.first() {
+            let more = if problems.len() > 1 {
+                format!(" (and {} more problems)", problems.len() - 1)
+            } else {
+                String::new()
+            };
+            bail!("{name}: {first}{more}; the file does not match its config");
+        }
+        let model = built.map_err(|e| anyhow!("{name}: {e}"))?;
+        Ok(Colf {
+            model,
+            params: ckpt.tensors.into_iter().collect(),
+            vars: None,
+            identity: ckpt.identity,
+            device,
+        })
+    }
+
+    /// Reads a model file.
+    pub fn load(path: &Path) -> Result<Colf> {
+        let name = path.display().to_string();
+        let bytes =
+            std::fs::read(path).with_context(|| format!("{name}: cannot read the model"))?;
+        Colf::from_bytes(&bytes, &name)
+    }
+
+    /// The model `explicit` names, else `$COLF_MODEL`, else the bundled default
+    /// (see [`default_model_path`]).
+    pub fn load_resolved(explicit: Option<&str>) -> Result<Colf> {
+        Colf::load(&resolve_model_path(explicit)?)
+    }
+
+    /// The file bytes (deterministic) and the identity they carry.
+    pub fn to_bytes(&self) -> Result<(Vec<u8>, String)> {
+        let host = checkpoint::to_host(&self.params)?;
+        Ok(checkpoint::to_bytes(&self.model.cfg, &host))
+    }
+
+    /// Writes the model file atomically (temporary file + rename in the target folder).
+    pub fn save(&self, path: &Path) -> Result<String> {
+        let (bytes, id) = self.to_bytes()?;
+        crate::io::write_atomic(path, &bytes)?;
+        Ok(id)
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.model.cfg
+    }
+
+    /// The module tree (differentiable calls for training).
+    pub fn model(&self) -> &ColfModel {
+        &self.model
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The identity of the weights as loaded or initialised; for a trainable model, of the
+    /// current weights (recomputed).
+    pub fn identity(&self) -> Result<String> {
+        if self.vars.is_some() {
+            return Ok(checkpoint::identity(
+                &self.model.cfg.to_json(),
+                &checkpoint::to_host(&self.params)?,
+            ));
+        }
+        Ok(self.identity.clone())
+    }
+
+    /// Total number of parameters.
+    pub fn num_parameters(&self) -> usize {
+        self.params.values().map(|t| t.elem_count()).sum()
+    }
+
+    /// Parameter tensors by name.
+    pub fn parameters(&self) -> &BTreeMap<String, Tensor> {
+        &self.params
+    }
+
+    /// Turns the parameters into `Var`s and rebuilds the model on them, so gradients flow to
+    /// them (see [`Colf::named_vars`]).
+    pub fn into_trainable(self) -> Result<Colf> {
+        if self.vars.is_some() {
+            return Ok(self);
+        }
+        let varmap = VarMap::new();
+        {
+            let mut data = varmap.data().lock().map_err(|_| anyhow!("var map lock"))?;
+            for (name, t) in &self.params {
+                data.insert(name.clone(), Var::from_tensor(t)?);
+            }
+        }
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &self.device);
+        let model = ColfModel::new(&self.model.cfg, vb)?;
+        let params = varmap
+            .data()
+            .lock()
+            .map_err(|_| anyhow!("var map lock"))?
+            .iter()
+            .map(|(n, v)| (n.clone(), v.as_tensor().clone()))
+            .collect();
+        Ok(Colf {
+            model,
+            params,
+            vars: Some(varmap),
+            identity: self.identity,
+            device: self.device,
+        })
+    }
+
+    /// The trainable `Var`s sorted by name (empty unless [`Colf::into_trainable`] was called).
+    pub fn named_vars(&self) -> Vec<(String, Var)> {
+        let Some(vars) = &self.vars else {
+            return Vec::new();
+        };
+        let data = vars.data().lock().expect("var map lock");
+        let mut all: Vec<(String, Var)> =
+            data.iter().map(|(n, v)| (n.clone(), v.clone())).collect();
+        all.sort_by(|a, b| a.0.cmp(&b.0));
+        all
+    }
+
+    /// Encodes one RGB image (h×w×3, row-major, values in [0, 1]) into `num_slots` foreground
+    /// slots and the background; the slot noise is drawn from `StdRng::seed_from_u64(seed)`.
+    pub fn encode(
+        &self,
+        image_rgb: &[f32],
+        h: usize,
+        w: usize,
+        num_slots: usize,
+        seed: u64,
+    ) -> Result<Encoded> {
+        if h == 0 || w == 0 || image_rgb.len() != h * w * 3 {
+            bail!(
+                "image buffer of {} values does not hold a {w}×{h} RGB image",
+                image_rgb.len()
+            );
+        }
+        let image = encoder::image_tensor(&self.model.cfg, image_rgb, h, w, &self.device)?;
+        let mut rng = StdRng::seed_from_u64(seed);
+        let out = self.model.encode(&image, num_slots, &mut rng)?;
+        let fg = out.fg.squeeze(0)?;
+        let fg_latents = if num_slots == 0 {
+            Vec::new()
+        } else {
+            fg.to_vec2::<f32>()?
+        };
+        let enc = Encoded {
+            fg_latents,
+            bg_latent: out.bg.squeeze(0)?.to_vec1::<f32>()?,
+            slot_mass: out.fg_mass.squeeze(0)?.to_vec1::<f32>()?,
+        };
+        let finite = enc
+            .bg_latent
+            .iter()
+            .chain(enc.fg_latents.iter().flatten())
+            .all(|v| v.is_finite());
+        if !finite {
+            bail!("the encoder produced non-finite slot latents");
+        }
+        Ok(enc)
+    }
+
+    /// Runs the hypernetworks once for these slots.
+    pub fn prepare(&self, fg_latents: &[Vec<f32>], bg_latent: &[f32]) -> Result<PreparedSlots> {
+        let d = self.model.cfg.slot_dim;
+        if bg_latent.len() != d || fg_latents.iter().any(|z| z.len() != d) {
+            bail!("slot latents must have {d} values (the model's slot dimension)");
+        }
+        if bg_latent
+            .iter()
+            .chain(fg_latents.iter().flatten())
+            .any(|v| !v.is_finite())
+        {
+            bail!("slot latents must be finite");
+        }
+        let k = fg_latents.len();
+        let flat: Vec<f32> = fg_latents.iter().flatten().copied().collect();
+        let fg = Tensor::from_vec(flat, (1, k, d), &self.device)?;
+        let bg = Tensor::from_vec(bg_latent.to_vec(), (1, d), &self.device)?;
+        Ok(PreparedSlots {
+            fields: self.model.prepare(&fg, &bg)?,
+            num_fg: k,
+        })
+    }
+
+    /// Rays per chunk that keep one activation tensor under `CHUNK_FLOATS`.
+    pub fn rays_per_chunk(&self, fields: usize) -> usize {
+        let cfg = &self.model.cfg;
+        let width = cfg
+            .lfn_hidden
+            .max(cfg.head_hidden)
+            .max(cfg.compositor_hidden)
+            .max(cfg.ray_input_dim());
+        (CHUNK_FLOATS / (fields * width)).clamp(64, 16384)
+    }
+
+    /// Renders world rays (origins, directions; directions need not be unit) through prepared
+    /// slots; slot k lives in frame `slot_to_world[k]`, the background in world space. Works in
+    /// chunks so memory stays bounded whatever the number of rays or slots.
+    pub fn render_rays(
+        &self,
+        prepared: &PreparedSlots,
+        slot_to_world: &[DMat4],
+        origins: &[DVec3],
+        dirs: &[DVec3],
+    ) -> Result<RayOutput> {
+        let s = 1 + prepared.num_fg;
+        if slot_to_world.len() != prepared.num_fg {
+            bail!(
+                "{} slot frames for {} slots",
+                slot_to_world.len(),
+                prepared.num_fg
+            );
+        }
+        if origins.len() != dirs.len() {
+            bail!(
+                "{} ray origins but {} directions",
+                origins.len(),
+                dirs.len()
+            );
+        }
+        let r = origins.len();
+        let mut out = RayOutput {
+            rgb: Vec::with_capacity(3 * r),
+            weights: Vec::with_capacity(s * r),
+            ordering: Vec::with_capacity(s * r),
+            fields: s,
+        };
+        let chunk = self.rays_per_chunk(s);
+        for start in (0..r).step_by(chunk) {
+            let end = (start + chunk).min(r);
+            let rays = RayBatch::new(
+                &self.model.cfg,
+                &[SceneRays {
+                    slot_to_world,
+                    origins: &origins[start..end],
+                    dirs: &dirs[start..end],
+                }],
+                &self.device,
+            )?;
+            let dec = self.model.decode(&prepared.fields, &rays)?;
+            out.rgb.extend(dec.rgb.flatten_all()?.to_vec1::<f32>()?);
+            out.weights
+                .extend(dec.weights.flatten_all()?.to_vec1::<f32>()?);
+            let ordering = dec.ordering.flatten_all()?.to_vec1::<f32>()?;
+            for (i, o) in ordering.iter().enumerate() {
+                out.ordering.push((*o as f64 + rays.base[i / s]) as f32);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Lets a backend be kept by the caller after the `VarBuilder` took it.
+struct SharedBackend<B>(std::sync::Arc<B>);
+
+impl<B: candle_nn::var_builder::SimpleBackend> candle_nn::var_builder::SimpleBackend
+    for SharedBackend<B>
+{
+    fn get(
+        &self,
+        s: candle_core::Shape,
+        name: &str,
+        h: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        self.0.get(s, name, h, dtype, dev)
+    }
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        self.0.get_unchecked(name, dtype, dev)
+    }
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.0.contains_tensor(name)
+    }
+}
+
+/// File name of the bundled default model.
+pub const DEFAULT_MODEL_FILE: &str = "default.safetensors";
+
+/// Where the bundled default model is looked for, in order:
+/// 1. `<folder of the running program>/../share/colf/default.safetensors` — where
+///    `make install` puts it beside `$(PREFIX)/bin`;
+/// 2. `<source tree>/models/default.safetensors` (the path of the crate when it was built) —
+///    a fresh clone's `target/release/colf-*` and `cargo run` find it there.
+pub fn default_model_candidates() -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    if let Some(dir) = std::env::current_exe()
+        .ok()
+        .and_then(|exe| exe.parent().map(Path::to_path_buf))
+    {
+        out.push(dir.join("../share/colf").join(DEFAULT_MODEL_FILE));
+    }
+    out.push(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("models")
+            .join(DEFAULT_MODEL_FILE),
+    );
+    out
+}
+
+/// The default model: `$COLF_MODEL` when set (and not empty), else the first existing
+/// [`default_model_candidates`] entry.
+pub fn default_model_path() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("COLF_MODEL").filter(|p| !p.is_empty()) {
+        return Ok(PathBuf::from(p));
+    }
+    let candidates = default_model_candidates();
+    candidates
+        .iter()
+        .find(|p| p.is_file())
+        .cloned()
+        .ok_or_else(|| {
+            let list: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
+            anyhow!(
+                "no model given and no default model found (set COLF_MODEL or pass --model; looked in {})",
+                list.join(", ")
+            )
+        })
+}
+
+/// `explicit` (a `--model` argument) if given, else [`default_model_path`].
+pub fn resolve_model_path(explicit: Option<&str>) -> Result<PathBuf> {
+    match explicit {
+        Some(p) => Ok(PathBuf::from(p)),
+        None => default_model_path(),
+    }
+}
+
+/// `colf-train init`: writes a freshly initialised model of `preset` to `output` (`-`: stdout)
+/// and returns a one-line summary (preset, parameters, size, identity).
+pub fn init_model_file(preset: &str, seed: u64, output: &str) -> Result<String> {
+    let cfg = Config::preset(preset)?;
+    let model = Colf::init(&cfg, seed)?;
+    let (bytes, id) = model.to_bytes()?;
+    crate::io::write_output(output, &bytes, true)?;
+    Ok(format!(
+        "wrote {} (preset {preset}, seed {seed}, {} parameters, {} bytes, identity {id})",
+        crate::io::display_name(output),
+        model.num_parameters(),
+        bytes.len()
+    ))
+}

@@ -1,0 +1,198 @@
+//! Rays as the light fields see them: 6-D Plücker coordinates in each slot's frame, with
+//! normalised, smoothly bounded moments; plus the per-slot shift that makes ordering values
+//! comparable across frames.
+//!
+//! For a world ray (origin o, direction d) and a slot with frame `slot_to_world` = [R | t]:
+//! - the ray is taken into the slot's frame (o' = slot_to_world⁻¹·o, d' = R⁻¹·d, normalised);
+//!   the background's frame is the world;
+//! - Plücker coordinates (d', m') with m' = o' × d': |m'| is the distance of the line from the
+//!   frame's origin, so it grows with the scene's extent. The authors fed it raw; here it is
+//!   divided by `scene_scale` and bounded smoothly, m̂ = (m'/s) / √(1 + |m'/s|²): ≈ m'/s near the
+//!   object, |m̂| < 1 always, so a camera 10⁴ units away or a slot moved 10⁴ units away gives
+//!   finite, bounded inputs (such rays pass far from the slot and all look alike to it);
+//! - optional Fourier features sin/cos(2^k·π·x) of the 6 coordinates (`ray_fourier_freqs`);
+//! - the shift dot(t − o, d): where the point of the ray closest to the slot's frame origin lies
+//!   along the ray, measured from the ray's origin. The light field only sees the line, so its
+//!   ordering value can only be measured from that closest point; adding the shift turns it into
+//!   a distance from the ray origin, comparable between slots in different frames (see
+//!   `compositor.rs`). Computed in f64; per ray the smallest shift (`base`) is subtracted before
+//!   the values go to f32 so precision is kept when everything is 10⁴ units away.
+
+use super::config::Config;
+use anyhow::{bail, Result};
+use candle_core::{Device, Tensor};
+use glam::{DMat4, DVec3};
+use rayon::prelude::*;
+
+/// One scene's rays: its K foreground slot frames and R world rays.
+#[derive(Clone, Copy, Debug)]
+pub struct SceneRays<'a> {
+    pub slot_to_world: &'a [DMat4],
+    pub origins: &'a [DVec3],
+    pub dirs: &'a [DVec3],
+}
+
+/// Rays of B scenes with S = 1 + K light fields each (background first).
+#[derive(Debug)]
+pub struct RayBatch {
+    /// Encoded rays [B·S, R, in], field-major within a scene.
+    pub coords: Tensor,
+    /// Ordering shifts minus `base`, [B, R, S], world units.
+    pub shift: Tensor,
+    /// Per ray the subtracted base shift [B·R], world units.
+    pub base: Vec<f64>,
+    pub scenes: usize,
+    pub fields: usize,
+    pub rays: usize,
+}
+
+/// The 6 bounded Plücker coordinates of a ray in a frame given by its inverse `world_to_frame`.
+pub fn plucker_in_frame(world_to_frame: &DMat4, o: DVec3, d: DVec3, scene_scale: f64) -> [f64; 6] {
+    let o_f = world_to_frame.transform_point3(o);
+    let d_f = world_to_frame.transform_vector3(d).normalize();
+    let m = o_f.cross(d_f) / scene_scale;
+    let m = m / (1.0 + m.length_squared()).sqrt();
+    [d_f.x, d_f.y, d_f.z, m.x, m.y, m.z]
+}
+
+/// Checks frames and rays; returns each frame's inverse.
+fn check(scene: usize, rays: &SceneRays) -> Result<Vec<DMat4>> {
+    if rays.origins.len() != rays.dirs.len() {
+        bail!(
+            "scene {scene}: {} ray origins but {} directions",
+            rays.origins.len(),
+            rays.dirs.len()
+        );
+    }
+    for (i, (o, d)) in rays.origins.iter().zip(rays.dirs).enumerate() {
+        if !o.is_finite() || !d.is_finite() || d.length_squared() < 1e-24 {
+            bail!("scene {scene}: ray {i} has a non-finite origin or a zero/non-finite direction");
+        }
+    }
+    rays.slot_to_world
+        .iter()
+        .enumerate()
+        .map(|(k, m)| {
+            let det = m.determinant();
+            if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
+                bail!("scene {scene}: slot {k}'s slot_to_world is not an invertible finite matrix");
+            }
+            Ok(m.inverse())
+        })
+        .collect()
+}
+
+impl RayBatch {
+    /// Encodes the rays of `scenes` (all with the same K and R).
+    pub fn new(cfg: &Config, scenes: &[SceneRays], dev: &Device) -> Result<RayBatch> {
+        let b = scenes.len();
+        if b == 0 {
+            bail!("no scenes to render");
+        }
+        let k = scenes[0].slot_to_world.len();
+        let r = scenes[0].origins.len();
+        if scenes
+            .iter()
+            .any(|s| s.slot_to_world.len() != k || s.origins.len() != r)
+        {
+            bail!("scenes of one batch must have the same number of slots and rays");
+        }
+        if r == 0 {
+            bail!("no rays to render");
+        }
+        let s = 1 + k;
+        let in_dim = cfg.ray_input_dim();
+        let freqs = cfg.ray_fourier_freqs;
+        let scale = cfg.scene_scale;
+        let mut coords = vec![0f32; b * s * r * in_dim];
+        let mut shift = vec![0f32; b * r * s];
+        let mut base = vec![0f64; b * r];
+        for (bi, scene) in scenes.iter().enumerate() {
+            let inverses = check(bi, scene)?;
+            let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
+            for (inv, m) in inverses.iter().zip(scene.slot_to_world) {
+                frames.push((*inv, m.w_axis.truncate()));
+            }
+            let scene_coords = &mut coords[bi * s * r * in_dim..(bi + 1) * s * r * in_dim];
+            scene_coords
+                .par_chunks_mut(r * in_dim)
+                .zip(frames.par_iter())
+                .for_each(|(field, (inv, _))| {
+                    for (ri, out) in field.chunks_exact_mut(in_dim).enumerate() {
+                        let p = plucker_in_frame(inv, scene.origins[ri], scene.dirs[ri], scale);
+                        for (c, v) in p.iter().enumerate() {
+                            out[c] = *v as f32;
+                            for f in 0..freqs {
+                                let arg = (1u64 << f) as f64 * std::f64::consts::PI * v;
+                                out[6 + 12 * f + c] = arg.sin() as f32;
+                                out[12 + 12 * f + c] = arg.cos() as f32;
+                            }
+                        }
+                    }
+                });
+            for ri in 0..r {
+                let o = scene.origins[ri];
+                let d = scene.dirs[ri].normalize();
+                let shifts: Vec<f64> = frames.iter().map(|(_, t)| (*t - o).dot(d)).collect();
+                let lo = shifts.iter().copied().fold(f64::INFINITY, f64::min);
+                base[bi * r + ri] = lo;
+                for (si, v) in shifts.iter().enumerate() {
+                    shift[(bi * r + ri) * s + si] = (v - lo) as f32;
+                }
+            }
+        }
+        Ok(RayBatch {
+            coords: Tensor::from_vec(coords, (b * s, r, in_dim), dev)?,
+            shift: Tensor::from_vec(shift, (b, r, s), dev)?,
+            base,
+            scenes: b,
+            fields: s,
+            rays: r,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plucker_is_bounded_and_origin_invariant() {
+        let id = DMat4::IDENTITY;
+        let d = DVec3::new(0.3, -0.2, 1.0);
+        let o = DVec3::new(1.0, 2.0, 3.0);
+        let a = plucker_in_frame(&id, o, d, 8.0);
+        let b = plucker_in_frame(&id, o + 5.0 * d, d, 8.0);
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() < 1e-12);
+        }
+        let far = plucker_in_frame(&id, DVec3::new(1e4, -3e4, 2e4), d, 8.0);
+        let m = DVec3::new(far[3], far[4], far[5]).length();
+        assert!(far.iter().all(|v| v.is_finite()) && m < 1.0);
+    }
+
+    #[test]
+    fn shifts_measure_frame_origins_along_the_ray() {
+        let cfg = Config::small();
+        let frames = [
+            DMat4::from_translation(DVec3::new(0.0, 0.0, -2.0)),
+            DMat4::from_translation(DVec3::new(0.0, 0.0, -7.0)),
+        ];
+        let origins = [DVec3::new(0.0, 0.0, 10.0)];
+        let dirs = [DVec3::new(0.0, 0.0, -2.0)];
+        let batch = RayBatch::new(
+            &cfg,
+            &[SceneRays {
+                slot_to_world: &frames,
+                origins: &origins,
+                dirs: &dirs,
+            }],
+            &Device::Cpu,
+        )
+        .unwrap();
+        let shift = batch.shift.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        // Background (world origin) at 10, slots at 12 and 17 from the ray origin.
+        assert_eq!(batch.base, vec![10.0]);
+        assert_eq!(shift, vec![0.0, 2.0, 7.0]);
+    }
+}

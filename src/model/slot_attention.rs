@@ -1,0 +1,206 @@
+//! Background-aware slot attention (uORF; COLF supplement Algorithm 1): one background slot and
+//! K foreground slots compete for the encoder's tokens over `slot_iters` rounds.
+//!
+//! Background and foreground have their own learned Gaussian (μ, log σ), slot layer norm, query
+//! projection, GRU and residual MLP; the input layer norm and the key/value projections are
+//! shared. The softmax runs over the slots (bg + fg), so slots compete for each token.
+//! K is a runtime argument (any K ≥ 0). The initial slot noise is drawn from the caller's seeded
+//! `StdRng` — never candle's RNG, never re-seeded to a constant here (a trap of the authors'
+//! code, where every call drew the same noise).
+//!
+//! Tensor names (prefix `slot_attention.`): `norm_input.{weight,bias}`, `to_k.weight`,
+//! `to_v.weight`, and for each branch `bg.` / `fg.`: `mu`, `log_sigma` [D],
+//! `norm_slot.{weight,bias}`, `to_q.weight` [D, D], `gru.{weight_ih_l0,weight_hh_l0,bias_ih_l0,
+//! bias_hh_l0}`, `norm_mlp.{weight,bias}`, `mlp.layers.{0,1}.{weight,bias}`.
+
+use super::config::Config;
+use super::layers::{LayerNormSlow, Mlp};
+use candle_core::{Module, Result, Tensor, D};
+use candle_nn::rnn::{gru, GRUConfig, GRUState, GRU, RNN};
+use candle_nn::{linear_no_bias, Init, Linear, VarBuilder};
+use rand::rngs::StdRng;
+use rand::Rng;
+use rand_distr::StandardNormal;
+
+/// Per-branch (background or foreground) parameters.
+#[derive(Clone, Debug)]
+struct SlotBranch {
+    mu: Tensor,
+    log_sigma: Tensor,
+    norm_slot: LayerNormSlow,
+    to_q: Linear,
+    gru: GRU,
+    norm_mlp: LayerNormSlow,
+    mlp: Mlp,
+}
+
+impl SlotBranch {
+    fn new(cfg: &Config, vb: VarBuilder) -> Result<SlotBranch> {
+        let d = cfg.slot_dim;
+        // uORF: μ ~ N(0, 1); log σ Xavier-uniform on a [1, 1, D] tensor.
+        let bound = (3.0 / d as f64).sqrt();
+        Ok(SlotBranch {
+            mu: vb.get_with_hints(
+                d,
+                "mu",
+                Init::Randn {
+                    mean: 0.0,
+                    stdev: 1.0,
+                },
+            )?,
+            log_sigma: vb.get_with_hints(
+                d,
+                "log_sigma",
+                Init::Uniform {
+                    lo: -bound,
+                    up: bound,
+                },
+            )?,
+            norm_slot: LayerNormSlow::new(d, vb.pp("norm_slot"))?,
+            to_q: linear_no_bias(d, d, vb.pp("to_q"))?,
+            gru: gru(d, d, GRUConfig::default(), vb.pp("gru"))?,
+            norm_mlp: LayerNormSlow::new(d, vb.pp("norm_mlp"))?,
+            mlp: Mlp::new(d, cfg.slot_mlp_hidden, 1, d, vb.pp("mlp"))?,
+        })
+    }
+
+    /// Initial slots μ + σ·ε for noise ε [B, n, D].
+    fn initial(&self, noise: &Tensor) -> Result<Tensor> {
+        noise
+            .broadcast_mul(&self.log_sigma.exp()?)?
+            .broadcast_add(&self.mu)
+    }
+
+    /// GRU update with `updates` as input and the previous slots as state, then the residual
+    /// MLP. slots, updates: [B, n, D].
+    fn update(&self, slots: &Tensor, updates: &Tensor) -> Result<Tensor> {
+        let (b, n, d) = slots.dims3()?;
+        let state = GRUState {
+            h: slots.reshape((b * n, d))?,
+        };
+        let slots = self
+            .gru
+            .step(&updates.reshape((b * n, d))?, &state)?
+            .h
+            .reshape((b, n, d))?;
+        slots.add(&self.mlp.forward(&self.norm_mlp.forward(&slots)?)?)
+    }
+}
+
+/// What slot attention returns.
+#[derive(Clone, Debug)]
+pub struct SlotOutput {
+    /// Foreground slots [B, K, D].
+    pub fg: Tensor,
+    /// Background slot [B, D].
+    pub bg: Tensor,
+    /// Share of the image's attention each foreground slot took in the last round [B, K]
+    /// (with the background's share, the K + 1 values sum to 1).
+    pub fg_mass: Tensor,
+    /// The background's share [B].
+    pub bg_mass: Tensor,
+}
+
+/// The slot encoder.
+#[derive(Clone, Debug)]
+pub struct SlotAttention {
+    norm_input: LayerNormSlow,
+    to_k: Linear,
+    to_v: Linear,
+    bg: SlotBranch,
+    fg: SlotBranch,
+    dim: usize,
+    iters: usize,
+}
+
+impl SlotAttention {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<SlotAttention> {
+        Ok(SlotAttention {
+            norm_input: LayerNormSlow::new(cfg.feature_dim, vb.pp("norm_input"))?,
+            to_k: linear_no_bias(cfg.feature_dim, cfg.slot_dim, vb.pp("to_k"))?,
+            to_v: linear_no_bias(cfg.feature_dim, cfg.slot_dim, vb.pp("to_v"))?,
+            bg: SlotBranch::new(cfg, vb.pp("bg"))?,
+            fg: SlotBranch::new(cfg, vb.pp("fg"))?,
+            dim: cfg.slot_dim,
+            iters: cfg.slot_iters,
+        })
+    }
+
+    /// Draws the initial-slot noise [B, 1 + K, D] from `rng` (per image: background first,
+    /// then the K foreground slots, row-major).
+    pub fn draw_noise(&self, b: usize, k: usize, rng: &mut StdRng) -> Result<Tensor> {
+        let n = b * (1 + k) * self.dim;
+        let noise: Vec<f32> = (0..n)
+            .map(|_| rng.sample::<f32, _>(StandardNormal))
+            .collect();
+        Tensor::from_vec(noise, (b, 1 + k, self.dim), self.mu_device())
+    }
+
+    fn mu_device(&self) -> &candle_core::Device {
+        self.bg.mu.device()
+    }
+
+    /// tokens [B, N, C] → slots, with K foreground slots and noise drawn from `rng`.
+    pub fn forward(&self, tokens: &Tensor, k: usize, rng: &mut StdRng) -> Result<SlotOutput> {
+        let b = tokens.dim(0)?;
+        let noise = self.draw_noise(b, k, rng)?;
+        self.forward_with_noise(tokens, &noise)
+    }
+
+    /// As `forward`, with the initial noise [B, 1 + K, D] given.
+    pub fn forward_with_noise(&self, tokens: &Tensor, noise: &Tensor) -> Result<SlotOutput> {
+        let (b, n_tokens, _) = tokens.dims3()?;
+        let (_, s, d) = noise.dims3()?;
+        let k = s - 1;
+        let x = self.norm_input.forward(tokens)?;
+        let keys = self.to_k.forward(&x)?; // [B, N, D]
+        let values = self.to_v.forward(&x)?; // [B, N, D]
+        let scale = 1.0 / (d as f64).sqrt();
+
+        let mut bg = self.bg.initial(&noise.narrow(1, 0, 1)?)?; // [B, 1, D]
+        let mut fg = if k > 0 {
+            Some(self.fg.initial(&noise.narrow(1, 1, k)?)?) // [B, K, D]
+        } else {
+            None
+        };
+        let mut attn = None;
+        for _ in 0..self.iters {
+            let q_bg = self.bg.to_q.forward(&self.bg.norm_slot.forward(&bg)?)?;
+            let q = match &fg {
+                Some(fg) => {
+                    let q_fg = self.fg.to_q.forward(&self.fg.norm_slot.forward(fg)?)?;
+                    Tensor::cat(&[&q_bg, &q_fg], 1)?
+                }
+                None => q_bg,
+            }; // [B, S, D]
+            let logits = (keys.matmul(&q.t()?)? * scale)?; // [B, N, S]
+                                                           // Softmax over the slots: the slots compete for every token.
+            let a = (candle_nn::ops::softmax(&logits, D::Minus1)? + 1e-8)?;
+            // Weighted mean over the tokens each slot won.
+            let weights = a.broadcast_div(&a.sum_keepdim(1)?)?;
+            let updates = weights.t()?.matmul(&values)?; // [B, S, D]
+            bg = self.bg.update(&bg, &updates.narrow(1, 0, 1)?)?;
+            if let Some(f) = &fg {
+                fg = Some(self.fg.update(f, &updates.narrow(1, 1, k)?)?);
+            }
+            attn = Some(a);
+        }
+        let attn = match attn {
+            Some(a) => a,
+            None => candle_core::bail!("slot_iters must be positive"),
+        };
+        // Each slot's share of the image's attention: the mean over tokens of its softmax
+        // weight (eps removed so shares sum to 1 up to rounding).
+        let mass = ((attn - 1e-8)?.sum(1)? / n_tokens as f64)?.clamp(0.0, 1.0)?; // [B, S]
+        let fg = match fg {
+            Some(fg) => fg,
+            None => Tensor::zeros((b, 0, d), tokens.dtype(), tokens.device())?,
+        };
+        Ok(SlotOutput {
+            fg,
+            bg: bg.squeeze(1)?,
+            fg_mass: mass.narrow(1, 1, k)?,
+            bg_mass: mass.narrow(1, 0, 1)?.squeeze(1)?,
+        })
+    }
+}

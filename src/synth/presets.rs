@@ -1,0 +1,389 @@
+//! The scene distributions: `clevr567` (DESIGN.md contract), `packed11` (11 objects, the
+//! paper's generalisation test), `clevr567-textured` (clevr567 on a procedural checker/noise
+//! floor) and `city` (a long street with two lanes of boxy cars, buildings and sky).
+
+use super::scene::{
+    mix64, spherical, Building, CameraPlacement, CarShape, Light, Object, Scene, CLEVR_COLORS,
+    CLEVR_SIZES,
+};
+use super::shading::Ground;
+use glam::DVec3;
+use rand::rngs::StdRng;
+use rand::Rng;
+use serde::Serialize;
+
+/// A scene distribution.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+pub enum Preset {
+    /// CLEVR-567: 5–7 CLEVR shapes on a grey floor (the DESIGN.md contract).
+    #[value(name = "clevr567")]
+    #[serde(rename = "clevr567")]
+    Clevr567,
+    /// packed-CLEVR-11: exactly 11 CLEVR shapes in the same area.
+    #[value(name = "packed11")]
+    #[serde(rename = "packed11")]
+    Packed11,
+    /// A long street: two lanes of boxy cars, buildings, sky; cameras look down the street.
+    #[value(name = "city")]
+    #[serde(rename = "city")]
+    City,
+    /// clevr567 on a procedural checker/noise floor.
+    #[value(name = "clevr567-textured")]
+    #[serde(rename = "clevr567-textured")]
+    Clevr567Textured,
+}
+
+impl Preset {
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Clevr567 => "clevr567",
+            Preset::Packed11 => "packed11",
+            Preset::City => "city",
+            Preset::Clevr567Textured => "clevr567-textured",
+        }
+    }
+}
+
+/// clevr567 cameras: distance from the origin and elevation, degrees.
+pub const CLEVR_CAMERA_DISTANCE: f64 = 12.4;
+pub const CLEVR_CAMERA_ELEVATION: f64 = 40.0;
+/// Focal length in units of the image width (horizontal field of view 49.13°).
+pub const FOCAL_PER_WIDTH: f64 = 1.09375;
+/// Object centres are uniform in [−CLEVR_EXTENT, CLEVR_EXTENT]².
+pub const CLEVR_EXTENT: f64 = 3.0;
+
+const SHAPES: [&str; 3] = ["sphere", "cube", "cylinder"];
+
+/// Samples the objects, background and light of one scene (cameras come from `sample_cameras`).
+pub fn sample_scene(preset: Preset, rng: &mut StdRng) -> Scene {
+    let light = Light::new(
+        30.0 + rng.random_range(-5.0..=5.0),
+        55.0 + rng.random_range(-5.0..=5.0),
+    );
+    match preset {
+        Preset::Clevr567 | Preset::Packed11 | Preset::Clevr567Textured => {
+            let (count, gap) = if preset == Preset::Packed11 {
+                (11, 0.02)
+            } else {
+                (rng.random_range(5..=7), 0.05)
+            };
+            let objects = sample_clevr_objects(rng, count, gap);
+            let ground = if preset == Preset::Clevr567Textured {
+                sample_textured_floor(rng)
+            } else {
+                Ground::Uniform { albedo: 0.5 }
+            };
+            Scene {
+                objects,
+                buildings: Vec::new(),
+                ground,
+                sky: false,
+                light,
+                cameras: Vec::new(),
+                rows: Vec::new(),
+            }
+        }
+        Preset::City => sample_city(rng, light),
+    }
+}
+
+/// `count` CLEVR shapes with footprints at least `gap` apart, centres uniform in the square.
+/// Each object's attributes are drawn once; its position is redrawn until it fits, and the whole
+/// layout is redrawn in the (rare) case one does not fit in 500 tries.
+fn sample_clevr_objects(rng: &mut StdRng, count: usize, gap: f64) -> Vec<Object> {
+    'layout: loop {
+        let mut objects: Vec<Object> = Vec::with_capacity(count);
+        for _ in 0..count {
+            let shape = SHAPES[rng.random_range(0..SHAPES.len())];
+            let color = rng.random_range(0..CLEVR_COLORS.len());
+            let size = rng.random_range(0..CLEVR_SIZES.len());
+            let yaw = rng.random_range(0.0..360.0);
+            let r = CLEVR_SIZES[size].1;
+            let mut placed = false;
+            for _ in 0..500 {
+                let x = rng.random_range(-CLEVR_EXTENT..=CLEVR_EXTENT);
+                let y = rng.random_range(-CLEVR_EXTENT..=CLEVR_EXTENT);
+                let fits = objects.iter().all(|o| {
+                    let d = (o.position[0] - x).hypot(o.position[1] - y);
+                    d >= o.footprint_radius + r + gap
+                });
+                if fits {
+                    objects.push(Object::clevr(shape, color, size, x, y, yaw));
+                    placed = true;
+                    break;
+                }
+            }
+            if !placed {
+                continue 'layout;
+            }
+        }
+        return objects;
+    }
+}
+
+/// A rotated checkerboard of two slightly tinted greys under two octaves of value noise; mean
+/// albedo near the plain floor's 0.5 so the objects keep their contrast.
+fn sample_textured_floor(rng: &mut StdRng) -> Ground {
+    let mut grey = |lo: f64, hi: f64| {
+        let g = rng.random_range(lo..=hi);
+        let tint = DVec3::new(
+            rng.random_range(0.9..=1.1),
+            rng.random_range(0.9..=1.1),
+            rng.random_range(0.9..=1.1),
+        );
+        (g * tint).to_array()
+    };
+    let albedo_a = grey(0.28, 0.42);
+    let albedo_b = grey(0.55, 0.72);
+    Ground::Checker {
+        square: rng.random_range(0.5..=1.5),
+        rotation_degrees: rng.random_range(0.0..90.0),
+        albedo_a,
+        albedo_b,
+        noise_scale: rng.random_range(0.8..=2.5),
+        noise_amplitude: rng.random_range(0.1..=0.3),
+        noise_seed: mix64(rng.random::<u64>()),
+    }
+}
+
+/// Street geometry of preset `city`.
+pub const STREET_ROAD_HALF_WIDTH: f64 = 4.0;
+pub const STREET_PAVEMENT_EDGE: f64 = 7.0;
+/// Lane centres: y = −LANE (heading +X) and y = +LANE (heading −X).
+pub const STREET_LANE: f64 = 1.8;
+
+fn sample_city(rng: &mut StdRng, light: Light) -> Scene {
+    // Buildings along both sides from x = −40 to 150, and a tall block closing the street.
+    let palette = [
+        [0.55, 0.5, 0.44],
+        [0.5, 0.28, 0.22],
+        [0.38, 0.4, 0.43],
+        [0.68, 0.66, 0.6],
+        [0.45, 0.42, 0.36],
+    ];
+    let mut buildings = Vec::new();
+    for side in [-1.0, 1.0] {
+        let mut x = -40.0;
+        while x < 150.0 {
+            let width = rng.random_range(8.0..=16.0);
+            let depth = rng.random_range(8.0..=14.0);
+            let height = rng.random_range(4.0..=22.0);
+            let base = palette[rng.random_range(0..palette.len())];
+            let shade = rng.random_range(0.85..=1.15);
+            buildings.push(Building {
+                center: [
+                    x + 0.5 * width,
+                    side * (STREET_PAVEMENT_EDGE + 0.5 + 0.5 * depth),
+                    0.5 * height,
+                ],
+                half: [0.5 * width, 0.5 * depth, 0.5 * height],
+                albedo: base.map(|c| c * shade),
+            });
+            x += width + rng.random_range(0.0..=2.5);
+        }
+    }
+    buildings.push(Building {
+        center: [160.0, 0.0, 15.0],
+        half: [5.0, 40.0, 15.0],
+        albedo: [0.5, 0.47, 0.42],
+    });
+
+    // Rows of cars across the two lanes, far apart along the street.
+    let n_rows = rng.random_range(2..=4);
+    let mut row_x = rng.random_range(0.0..=8.0);
+    let mut objects: Vec<Object> = Vec::new();
+    let mut rows = Vec::with_capacity(n_rows);
+    for _ in 0..n_rows {
+        rows.push(row_x);
+        let before = objects.len();
+        for (lane_y, heading) in [(-STREET_LANE, 0.0), (STREET_LANE, 180.0)] {
+            let mut lane_cars = Vec::new();
+            if rng.random_bool(0.85) || (lane_y > 0.0 && objects.len() == before) {
+                lane_cars.push(row_x + rng.random_range(-1.5..=1.5));
+                if rng.random_bool(0.4) {
+                    lane_cars.push(lane_cars[0] + rng.random_range(6.0..=7.5));
+                }
+            }
+            for x in lane_cars {
+                let y = lane_y + rng.random_range(-0.25..=0.25);
+                let car = sample_car(rng, x, y, heading);
+                if objects.iter().all(|o| !cars_overlap(o, &car)) {
+                    objects.push(car);
+                }
+            }
+        }
+        row_x += rng.random_range(14.0..=28.0);
+    }
+    Scene {
+        objects,
+        buildings,
+        ground: Ground::Street {
+            road_half_width: STREET_ROAD_HALF_WIDTH,
+            pavement_edge: STREET_PAVEMENT_EDGE,
+        },
+        sky: true,
+        light,
+        cameras: Vec::new(),
+        rows,
+    }
+}
+
+fn sample_car(rng: &mut StdRng, x: f64, y: f64, heading: f64) -> Object {
+    let half_length = rng.random_range(1.9..=2.4);
+    let half_width = rng.random_range(0.8..=0.95);
+    let body_half_height = rng.random_range(0.28..=0.38);
+    let clearance = 0.22;
+    let shape = CarShape {
+        body_half: [half_length, half_width, body_half_height],
+        cabin_half: [
+            half_length * rng.random_range(0.45..=0.6),
+            0.88 * half_width,
+            rng.random_range(0.22..=0.3),
+        ],
+        cabin_offset: -rng.random_range(0.05..=0.3) * half_length,
+        wheel_half: [0.33, 0.14, 0.33],
+    };
+    let (color_name, rgb) = CLEVR_COLORS[rng.random_range(0..CLEVR_COLORS.len())];
+    Object {
+        shape: "car".into(),
+        color: color_name.into(),
+        rgb,
+        size: half_length,
+        size_name: "car".into(),
+        position: [x, y, clearance + body_half_height],
+        rotation_z_degrees: heading + rng.random_range(-6.0..=6.0),
+        footprint_radius: half_length.hypot(half_width),
+        car: Some(shape),
+        visible_pixels: Vec::new(),
+    }
+}
+
+/// Whether two nearly axis-aligned cars' footprints (inflated for their ±6° yaw and a margin)
+/// overlap.
+fn cars_overlap(a: &Object, b: &Object) -> bool {
+    let (ha, hb) = (a.car.map(|c| c.body_half), b.car.map(|c| c.body_half));
+    let (Some(ha), Some(hb)) = (ha, hb) else {
+        return false;
+    };
+    let slack = (ha[0] + hb[0]) * 6f64.to_radians().sin() + 0.3;
+    (a.position[0] - b.position[0]).abs() < ha[0] + hb[0] + 0.3
+        && (a.position[1] - b.position[1]).abs() < ha[1] + hb[1] + slack
+}
+
+/// Draws `views` camera placements for the scene.
+pub fn sample_cameras(
+    preset: Preset,
+    scene: &Scene,
+    rng: &mut StdRng,
+    views: usize,
+) -> Vec<CameraPlacement> {
+    (0..views)
+        .map(|v| {
+            let file_path = format!("view_{v:03}.png");
+            match preset {
+                Preset::City => {
+                    // View v stands in front of row v mod rows, in a lane, between
+                    // near-ground and above-car height, facing down the street (+X).
+                    let rows = &scene.rows;
+                    let target_row = rows.get(v % rows.len().max(1)).copied().unwrap_or(0.0);
+                    let lane = if rng.random_bool(0.5) {
+                        STREET_LANE
+                    } else {
+                        -STREET_LANE
+                    };
+                    let eye = DVec3::new(
+                        target_row - rng.random_range(7.0..=11.0),
+                        lane + rng.random_range(-0.3..=0.3),
+                        rng.random_range(0.4..=2.0),
+                    );
+                    let target = DVec3::new(eye.x + 30.0, eye.y, 0.3 * eye.z);
+                    CameraPlacement {
+                        file_path,
+                        position: eye.to_array(),
+                        look_at: target.to_array(),
+                        azimuth_degrees: None,
+                        elevation_degrees: None,
+                        distance: None,
+                    }
+                }
+                _ => {
+                    let azimuth = rng.random_range(0.0..360.0);
+                    let eye = CLEVR_CAMERA_DISTANCE * spherical(azimuth, CLEVR_CAMERA_ELEVATION);
+                    CameraPlacement {
+                        file_path,
+                        position: eye.to_array(),
+                        look_at: [0.0; 3],
+                        azimuth_degrees: Some(azimuth),
+                        elevation_degrees: Some(CLEVR_CAMERA_ELEVATION),
+                        distance: Some(CLEVR_CAMERA_DISTANCE),
+                    }
+                }
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn clevr_layouts_follow_the_contract() {
+        for (preset, range) in [(Preset::Clevr567, 5..=7), (Preset::Packed11, 11..=11)] {
+            let mut counts = std::collections::BTreeSet::new();
+            for seed in 0..200 {
+                let mut rng = StdRng::seed_from_u64(seed);
+                let scene = sample_scene(preset, &mut rng);
+                let n = scene.objects.len();
+                assert!(range.contains(&n), "{preset:?}: {n} objects");
+                counts.insert(n);
+                let l = &scene.light;
+                assert!((25.0..=35.0).contains(&l.azimuth_degrees));
+                assert!((50.0..=60.0).contains(&l.elevation_degrees));
+                for (i, a) in scene.objects.iter().enumerate() {
+                    assert!(a.position[0].abs() <= 3.0 && a.position[1].abs() <= 3.0);
+                    assert!([0.35, 0.7].contains(&a.size));
+                    for b in &scene.objects[i + 1..] {
+                        let d = (a.position[0] - b.position[0]).hypot(a.position[1] - b.position[1]);
+                        assert!(d > a.size + b.size, "objects interpenetrate");
+                    }
+                }
+            }
+            assert_eq!(counts.len(), range.count(), "{preset:?}: every count occurs");
+        }
+    }
+
+    #[test]
+    fn clevr_cameras_are_on_the_contract_sphere() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let scene = sample_scene(Preset::Clevr567, &mut rng);
+        let cams = sample_cameras(Preset::Clevr567, &scene, &mut rng, 4);
+        assert_eq!(cams.len(), 4);
+        for c in cams {
+            let p = DVec3::from_array(c.position);
+            assert!((p.length() - 12.4).abs() < 1e-9);
+            assert!((p.z / p.length() - 40f64.to_radians().sin()).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn city_has_rows_of_non_overlapping_cars_and_street_cameras() {
+        for seed in 0..50 {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let scene = sample_scene(Preset::City, &mut rng);
+            assert!(scene.objects.len() >= 2, "{}", scene.objects.len());
+            for (i, a) in scene.objects.iter().enumerate() {
+                assert!(a.position[1].abs() < STREET_ROAD_HALF_WIDTH);
+                for b in &scene.objects[i + 1..] {
+                    assert!(!cars_overlap(a, b));
+                }
+            }
+            let cams = sample_cameras(Preset::City, &scene, &mut rng, 4);
+            for c in cams {
+                assert!((0.4..=2.0).contains(&c.position[2]));
+                assert!(c.look_at[0] > c.position[0], "faces down the street");
+            }
+        }
+    }
+}

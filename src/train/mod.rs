@@ -1,0 +1,3 @@
+//! Training: optimizer with checkpointable state, and (as it lands) the training loop.
+
+pub mod adam;
