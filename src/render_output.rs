@@ -60,6 +60,32 @@ impl FrameRender {
             .collect()
     }
 
+    /// The mask PNG: 8-bit grey labels (0 = background, k + 1 = slot k) while there are fewer
+    /// than 255 slots, 16-bit grey beyond, so no label is ever clipped.
+    pub fn mask_png(&self) -> Result<Vec<u8>> {
+        self.validate()?;
+        let labels = self.labels();
+        if self.num_slots < 255 {
+            let grey: Vec<u8> = labels.iter().map(|&l| l as u8).collect();
+            return Ok(crate::image_io::encode_png_grey(
+                self.width,
+                self.height,
+                &grey,
+            ));
+        }
+        let grey: Vec<u16> = labels
+            .iter()
+            .map(|&l| l.min(u16::MAX as u32) as u16)
+            .collect();
+        let img =
+            image::ImageBuffer::<image::Luma<u16>, _>::from_raw(self.width, self.height, grey)
+                .ok_or_else(|| anyhow!("internal error: mask buffer size"))?;
+        let mut bytes = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut bytes, image::ImageFormat::Png)
+            .map_err(|e| anyhow!("PNG encoding failed: {e}"))?;
+        Ok(bytes.into_inner())
+    }
+
     /// The EXR bytes: `R`, `G`, `B` (float colour) and, per slot, `bg.weight` / `bg.order` for
     /// the background and `slotK.weight` / `slotK.order` for foreground slot K. Dotted names
     /// show up as layers (`slot3`) with channels `weight` and `order` in EXR viewers.

@@ -59,3 +59,46 @@ pub struct EncodeArgs {
     #[arg(short, long, default_value = "-", value_name = "OUT")]
     pub output: String,
 }
+
+/// Runs `colf-encode`.
+pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
+    use crate::camera::Cameras;
+    use crate::encode::{encode_image, EncodeOptions};
+    use anyhow::bail;
+    if args.image == "-" && args.camera.as_deref() == Some("-") {
+        bail!("IMAGE and --camera cannot both be stdin");
+    }
+    let image = crate::image_io::read_rgb(&args.image)?;
+    let camera_to_world = match &args.camera {
+        None => glam::DMat4::IDENTITY,
+        Some(path) => {
+            let cameras = Cameras::read(path)?;
+            let Some(frame) = cameras.frames.get(args.frame) else {
+                bail!(
+                    "{}: --frame {} does not exist (the file has {} frames)",
+                    crate::io::display_name(path),
+                    args.frame,
+                    cameras.frames.len()
+                );
+            };
+            frame.camera_to_world
+        }
+    };
+    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let source = args.source.clone().unwrap_or_else(|| {
+        std::path::Path::new(&args.image)
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .filter(|_| args.image != "-")
+            .unwrap_or_else(|| "stdin".into())
+    });
+    let opts = EncodeOptions {
+        num_slots: args.slots.unwrap_or(model.config().default_slots),
+        prune_mass: args.prune,
+        seed: args.seed,
+        camera_to_world,
+        source,
+    };
+    let codes = encode_image(&model, &image, &opts)?;
+    codes.write(&args.output)
+}

@@ -19,7 +19,7 @@ compositor weights)\n\n\
   DIR/S.exr        with --exr: float channels R, G, B; bg.weight and bg.order for the \
 background; slotK.weight and slotK.order for slot K (compositor weight in [0, 1] and the \
 world-comparable ordering value)\n\n\
-Every file is written atomically. Codes encoded by another model are refused. The hypernetwork \
+Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written atomically; a progress line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The hypernetwork \
 runs once per slot per run; rays are evaluated in chunks so memory stays bounded whatever the \
 image size or slot count. --frames A..B renders a subset (half-open, like Rust ranges: 0..10 \
 is frames 0 to 9; A.. and ..B work too) so batches can be split across processes.\n\n\
@@ -53,11 +53,82 @@ pub struct RenderArgs {
     #[arg(long, value_name = "A..B")]
     pub frames: Option<String>,
 
-    /// Rays evaluated per chunk (bounds memory).
-    #[arg(long, default_value_t = 4096, value_name = "N")]
-    pub chunk: usize,
-
     /// Model file (default: $COLF_MODEL, else the bundled default model).
     #[arg(long, value_name = "M")]
     pub model: Option<String>,
+
+    /// No per-frame progress lines on stderr.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+/// Runs `colf-render`.
+pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
+    use crate::camera::Cameras;
+    use crate::codes::Codes;
+    use crate::io::{display_name, write_atomic};
+    use crate::render::{parse_frame_range, PreparedScene};
+    use anyhow::{bail, Context};
+    use std::path::Path;
+
+    let codes_path = args.codes.as_deref().unwrap_or("-");
+    if codes_path == "-" && args.cameras == "-" {
+        bail!("CODES and --cameras cannot both be stdin");
+    }
+    let codes = Codes::read(codes_path)?;
+    let cameras = Cameras::read(&args.cameras)?;
+    let range = match &args.frames {
+        Some(text) => parse_frame_range(text, cameras.frames.len())?,
+        None => 0..cameras.frames.len(),
+    };
+    // Output names, checked up front: two frames must not write the same file.
+    let names: Vec<String> = range
+        .clone()
+        .map(|i| {
+            cameras.frames[i]
+                .stem()
+                .unwrap_or_else(|| format!("frame_{i:04}"))
+        })
+        .collect();
+    let mut seen = std::collections::BTreeSet::new();
+    if let Some(dup) = names.iter().find(|n| !seen.insert(n.as_str())) {
+        bail!(
+            "{}: two frames would both be written as `{dup}` (give frames distinct file_path stems)",
+            display_name(&args.cameras)
+        );
+    }
+    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
+    let out_dir = Path::new(&args.out);
+    std::fs::create_dir_all(out_dir)
+        .with_context(|| format!("{}: cannot create the output folder", args.out))?;
+    let total = names.len();
+    for (n, (index, name)) in range.zip(&names).enumerate() {
+        let started = std::time::Instant::now();
+        let frame = scene
+            .render_frame(&model, &cameras.frames[index])
+            .with_context(|| format!("frame {index}"))?;
+        let png = crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
+        write_atomic(&out_dir.join(format!("{name}.png")), &png)?;
+        if args.masks {
+            write_atomic(
+                &out_dir.join(format!("{name}.mask.png")),
+                &frame.mask_png()?,
+            )?;
+        }
+        if args.exr {
+            write_atomic(&out_dir.join(format!("{name}.exr")), &frame.exr_bytes()?)?;
+        }
+        if !args.quiet {
+            eprintln!(
+                "colf-render: {}/{total} {name} ({}x{}, {} slots) {:.0} ms",
+                n + 1,
+                frame.width,
+                frame.height,
+                scene.num_slots(),
+                started.elapsed().as_secs_f64() * 1e3
+            );
+        }
+    }
+    Ok(())
 }

@@ -21,7 +21,8 @@
 //! holds from the first step, and V learns the near-tie kernel. The softmax subtracts the per-ray
 //! maximum, so any finite scores give finite weights summing to 1.
 //!
-//! Tensor names: `compositor.v.layers.{i}.{weight,bias}`, `compositor.gap_log_slope` [1].
+//! Tensor names: `compositor.v.layers.{i}.{weight,bias}` (no bias on the output layer: a
+//! constant added to every score is invisible to the softmax), `compositor.gap_log_slope` [1].
 
 use super::config::Config;
 use super::layers::Mlp;
@@ -47,7 +48,7 @@ pub struct Composite {
 impl Compositor {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Compositor> {
         Ok(Compositor {
-            v: Mlp::new(
+            v: Mlp::without_output_bias(
                 2,
                 cfg.compositor_hidden,
                 cfg.compositor_hidden_layers,

@@ -29,7 +29,8 @@ impl Module for LayerNormSlow {
 }
 
 /// An MLP: `hidden_layers` ReLU layers of width `hidden`, then a linear output layer.
-/// Parameters `{vb}.layers.{i}.weight` [out, in] and `.bias` [out], i = 0 … hidden_layers.
+/// Parameters `{vb}.layers.{i}.weight` [out, in] and `.bias` [out], i = 0 … hidden_layers
+/// (the output layer may go without a bias, see [`Mlp::without_output_bias`]).
 #[derive(Clone, Debug)]
 pub struct Mlp {
     layers: Vec<Linear>,
@@ -43,11 +44,39 @@ impl Mlp {
         output: usize,
         vb: VarBuilder,
     ) -> Result<Mlp> {
+        Self::build(input, hidden, hidden_layers, output, true, vb)
+    }
+
+    /// As `new`, with no bias on the output layer: for scores that feed a softmax, where a
+    /// constant added to every score changes nothing and so could never be learned.
+    pub fn without_output_bias(
+        input: usize,
+        hidden: usize,
+        hidden_layers: usize,
+        output: usize,
+        vb: VarBuilder,
+    ) -> Result<Mlp> {
+        Self::build(input, hidden, hidden_layers, output, false, vb)
+    }
+
+    fn build(
+        input: usize,
+        hidden: usize,
+        hidden_layers: usize,
+        output: usize,
+        output_bias: bool,
+        vb: VarBuilder,
+    ) -> Result<Mlp> {
         let mut layers = Vec::with_capacity(hidden_layers + 1);
         let mut width = input;
         for i in 0..=hidden_layers {
             let out = if i == hidden_layers { output } else { hidden };
-            layers.push(linear(width, out, vb.pp(format!("layers.{i}")))?);
+            let vb_i = vb.pp(format!("layers.{i}"));
+            layers.push(if i == hidden_layers && !output_bias {
+                candle_nn::linear_no_bias(width, out, vb_i)?
+            } else {
+                linear(width, out, vb_i)?
+            });
             width = out;
         }
         Ok(Mlp { layers })

@@ -1,0 +1,487 @@
+//! The COLF model: gradients reach every parameter, numerics survive extremes, slots in
+//! different frames composite front to back, checkpoints are reproducible and validated.
+
+use candle_core::{Device, Tensor};
+use colf::model::{Colf, Config, RayBatch, SceneRays};
+use glam::{DMat4, DVec3};
+use proptest::prelude::*;
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+
+/// A tiny config so forward+backward is quick.
+fn tiny() -> Config {
+    Config {
+        preset: "tiny".into(),
+        encoder_size: 16,
+        encoder_first_stride: 2,
+        encoder_channels: 8,
+        encoder_channels_low: 8,
+        feature_dim: 8,
+        slot_dim: 8,
+        slot_iters: 3,
+        slot_mlp_hidden: 16,
+        default_slots: 2,
+        lfn_hidden: 16,
+        lfn_hidden_layers: 2,
+        lfn_features: 8,
+        ray_fourier_freqs: 1,
+        hypernet_hidden: 8,
+        head_hidden: 8,
+        head_hidden_layers: 1,
+        compositor_hidden: 8,
+        compositor_hidden_layers: 1,
+        scene_scale: 4.0,
+    }
+}
+
+/// Rays of a camera at `eye` looking at the origin, n×n pixels over a small field of view.
+fn camera_rays(eye: DVec3, n: usize) -> (Vec<DVec3>, Vec<DVec3>) {
+    let forward = (-eye).normalize();
+    let up = if forward.z.abs() > 0.99 {
+        DVec3::X
+    } else {
+        DVec3::Z
+    };
+    let right = forward.cross(up).normalize();
+    let up = right.cross(forward);
+    let mut origins = Vec::new();
+    let mut dirs = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let u = (i as f64 + 0.5) / n as f64 - 0.5;
+            let v = (j as f64 + 0.5) / n as f64 - 0.5;
+            origins.push(eye);
+            dirs.push(forward + 0.8 * (u * right - v * up));
+        }
+    }
+    (origins, dirs)
+}
+
+fn test_image(n: usize) -> Vec<f32> {
+    (0..n * n * 3)
+        .map(|i| {
+            let p = i / 3;
+            let (x, y) = (p % n, p / n);
+            let inside = (x as i64 - n as i64 / 2).pow(2) + (y as i64 - n as i64 / 3).pow(2)
+                < (n as i64 / 5).pow(2);
+            if inside {
+                [0.9, 0.2, 0.1][i % 3]
+            } else {
+                0.5
+            }
+        })
+        .collect()
+}
+
+fn all_finite(v: &[f32]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+#[test]
+fn every_parameter_receives_a_gradient() {
+    let cfg = tiny();
+    let colf = Colf::init(&cfg, 1).unwrap().into_trainable().unwrap();
+    let model = colf.model();
+    let dev = Device::Cpu;
+    let s = cfg.encoder_size;
+    let mut images = test_image(s);
+    images.extend(test_image(s).iter().map(|v| 1.0 - v));
+    // [2, S, S, 3] → [2, 3, S, S]
+    let images = Tensor::from_vec(images, (2, s, s, 3), &dev)
+        .unwrap()
+        .permute((0, 3, 1, 2))
+        .unwrap()
+        .contiguous()
+        .unwrap();
+    let mut rng = StdRng::seed_from_u64(0);
+    let k = 3;
+    let slots = model.encode(&images, k, &mut rng).unwrap();
+    let fields = model.prepare(&slots.fg, &slots.bg).unwrap();
+    let frames = vec![DMat4::from_translation(DVec3::new(0.5, 0.0, 0.0)); k];
+    let (o1, d1) = camera_rays(DVec3::new(6.0, 2.0, 4.0), 6);
+    let (o2, d2) = camera_rays(DVec3::new(-3.0, 5.0, 4.0), 6);
+    let rays = RayBatch::new(
+        &cfg,
+        &[
+            SceneRays {
+                slot_to_world: &frames,
+                origins: &o1,
+                dirs: &d1,
+            },
+            SceneRays {
+                slot_to_world: &frames,
+                origins: &o2,
+                dirs: &d2,
+            },
+        ],
+        &dev,
+    )
+    .unwrap();
+    let out = model.decode(&fields, &rays).unwrap();
+    let target = Tensor::full(0.3f32, out.rgb.shape(), &dev).unwrap();
+    let loss = (out.rgb - target)
+        .unwrap()
+        .sqr()
+        .unwrap()
+        .mean_all()
+        .unwrap();
+    let grads = loss.backward().unwrap();
+    let vars = colf.named_vars();
+    assert_eq!(vars.len(), colf.parameters().len());
+    let mut missing = Vec::new();
+    for (name, var) in &vars {
+        let nonzero = grads
+            .get(var.as_tensor())
+            .map(|g| {
+                g.abs()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+                    > 0.0
+            })
+            .unwrap_or(false);
+        if !nonzero {
+            missing.push(name.clone());
+        }
+    }
+    assert!(missing.is_empty(), "no gradient reached: {missing:?}");
+}
+
+#[test]
+fn encode_is_seeded_and_handles_any_slot_count() {
+    let colf = Colf::init(&Config::small(), 0).unwrap();
+    let img = test_image(40);
+    let a = colf.encode(&img, 40, 40, 7, 11).unwrap();
+    let b = colf.encode(&img, 40, 40, 7, 11).unwrap();
+    let c = colf.encode(&img, 40, 40, 7, 12).unwrap();
+    assert_eq!(a, b);
+    assert_ne!(a.fg_latents, c.fg_latents);
+    assert_eq!(a.fg_latents.len(), 7);
+    assert!(a.slot_mass.iter().all(|m| (0.0..=1.0).contains(m)));
+    assert!(a.slot_mass.iter().sum::<f32>() <= 1.0 + 1e-4);
+    for k in [0, 1, 30] {
+        let e = colf.encode(&img, 40, 40, k, 0).unwrap();
+        assert_eq!(e.fg_latents.len(), k);
+        assert_eq!(e.slot_mass.len(), k);
+        assert!(all_finite(&e.bg_latent));
+    }
+    // Images of other sizes and out-of-range values are resized and clamped.
+    let big: Vec<f32> = (0..300 * 200 * 3).map(|i| (i % 11) as f32 - 3.0).collect();
+    assert!(colf.encode(&big, 200, 300, 3, 0).is_ok());
+    assert!(colf.encode(&big, 10, 10, 3, 0).is_err());
+}
+
+/// Renders `k` copies of a slot with the given frames from a camera; checks finiteness and
+/// that weights sum to 1.
+fn render_check(colf: &Colf, frames: &[DMat4], eye: DVec3, n: usize) -> colf::model::RayOutput {
+    let img = test_image(32);
+    let enc = colf.encode(&img, 32, 32, 1, 0).unwrap();
+    let fg = vec![enc.fg_latents[0].clone(); frames.len()];
+    let prepared = colf.prepare(&fg, &enc.bg_latent).unwrap();
+    let (o, d) = camera_rays(eye, n);
+    let out = colf.render_rays(&prepared, frames, &o, &d).unwrap();
+    assert_eq!(out.fields, frames.len() + 1);
+    assert_eq!(out.rgb.len(), 3 * n * n);
+    assert!(all_finite(&out.rgb) && all_finite(&out.weights) && all_finite(&out.ordering));
+    assert!(out.rgb.iter().all(|v| (0.0..=1.0).contains(v)));
+    for row in out.weights.chunks_exact(out.fields) {
+        let sum: f32 = row.iter().sum();
+        assert!((sum - 1.0).abs() < 1e-4, "weights sum to {sum}");
+    }
+    out
+}
+
+#[test]
+fn renders_stay_finite_at_extremes() {
+    let colf = Colf::init(&Config::small(), 0).unwrap();
+    let eye = DVec3::new(8.0, -9.0, 8.0);
+    render_check(&colf, &[], eye, 8); // background only
+    render_check(&colf, &[DMat4::IDENTITY], eye, 8);
+    let many: Vec<DMat4> = (0..200)
+        .map(|i| DMat4::from_translation(DVec3::new((i % 20) as f64 * 0.3, (i / 20) as f64, 0.0)))
+        .collect();
+    render_check(&colf, &many, eye, 6);
+    // Slots moved 10⁴ units away, rotated.
+    let far = [
+        DMat4::from_translation(DVec3::new(1e4, 0.0, 0.0)),
+        DMat4::from_rotation_translation(
+            glam::DQuat::from_rotation_z(1.0),
+            DVec3::new(-1e4, 3e4, 1e4),
+        ),
+        DMat4::IDENTITY,
+    ];
+    render_check(&colf, &far, eye, 6);
+    // A camera 10⁴ units away, looking at the origin.
+    render_check(&colf, &far, DVec3::new(1e4, 5e3, 2e3), 6);
+    // Rays (nearly) parallel to each axis.
+    for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+        let o = vec![DVec3::new(1.0, 2.0, 3.0) - 20.0 * axis; 3];
+        let d = vec![axis, axis + DVec3::splat(1e-9), -axis + DVec3::splat(1e-12)];
+        let enc = colf.encode(&test_image(16), 16, 16, 2, 0).unwrap();
+        let prepared = colf.prepare(&enc.fg_latents, &enc.bg_latent).unwrap();
+        let out = colf
+            .render_rays(&prepared, &[DMat4::IDENTITY, far[1]], &o, &d)
+            .unwrap();
+        assert!(all_finite(&out.rgb) && all_finite(&out.weights));
+    }
+}
+
+#[test]
+fn bad_rays_and_frames_are_errors_not_nans() {
+    let colf = Colf::init(&Config::small(), 0).unwrap();
+    let enc = colf.encode(&test_image(16), 16, 16, 1, 0).unwrap();
+    let prepared = colf.prepare(&enc.fg_latents, &enc.bg_latent).unwrap();
+    let o = [DVec3::ZERO];
+    assert!(colf
+        .render_rays(&prepared, &[DMat4::IDENTITY], &o, &[DVec3::ZERO])
+        .is_err());
+    assert!(colf
+        .render_rays(&prepared, &[DMat4::ZERO], &o, &[DVec3::X])
+        .is_err());
+    assert!(colf.render_rays(&prepared, &[], &o, &[DVec3::X]).is_err());
+    let empty = colf
+        .render_rays(&prepared, &[DMat4::IDENTITY], &[], &[])
+        .unwrap();
+    assert!(empty.rgb.is_empty());
+    assert!(colf.prepare(&[vec![0.0; 3]], &enc.bg_latent).is_err());
+}
+
+#[test]
+fn moved_copies_composite_front_to_back() {
+    let colf = Colf::init(&Config::small(), 0).unwrap();
+    let enc = colf.encode(&test_image(32), 32, 32, 1, 0).unwrap();
+    let slot = enc.fg_latents[0].clone();
+    let prepared = colf.prepare(&[slot.clone(), slot], &enc.bg_latent).unwrap();
+    // A ray along −Z from z = 40 (and a tilted one); the two copies sit on the ray at
+    // depths 10 and 10 + gap; which copy is listed first must not matter.
+    let dir = DVec3::new(0.1, -0.05, -1.0).normalize();
+    let origin = DVec3::new(0.3, 0.2, 40.0);
+    for gap in [8.0, 30.0, 1e4] {
+        let near = DMat4::from_translation(origin + 10.0 * dir);
+        let far = DMat4::from_translation(origin + (10.0 + gap) * dir);
+        for (frames, near_col) in [([near, far], 1), ([far, near], 2)] {
+            let out = colf
+                .render_rays(&prepared, &frames, &[origin], &[dir])
+                .unwrap();
+            let far_col = 3 - near_col;
+            let (wn, wf) = (out.weights[near_col], out.weights[far_col]);
+            assert!(wn > wf, "gap {gap}: near weight {wn} ≤ far weight {wf}");
+            let (on, of) = (out.ordering[near_col], out.ordering[far_col]);
+            assert!(
+                ((of - on) as f64 - gap).abs() < 1e-3 * gap,
+                "ordering values {on}, {of}"
+            );
+        }
+    }
+}
+
+#[test]
+fn chunked_rendering_matches_one_batch() {
+    let colf = Colf::init(&Config::small(), 0).unwrap();
+    let enc = colf.encode(&test_image(32), 32, 32, 3, 0).unwrap();
+    let prepared = colf.prepare(&enc.fg_latents, &enc.bg_latent).unwrap();
+    let frames = [DMat4::IDENTITY; 3];
+    let chunk = colf.rays_per_chunk(4);
+    let n = ((chunk + 100) as f64).sqrt().ceil() as usize;
+    let (o, d) = camera_rays(DVec3::new(5.0, 6.0, 7.0), n);
+    let all = colf.render_rays(&prepared, &frames, &o, &d).unwrap();
+    let tail = colf
+        .render_rays(&prepared, &frames, &o[chunk..], &d[chunk..])
+        .unwrap();
+    let k = 3 * chunk;
+    for (a, b) in all.rgb[k..].iter().zip(&tail.rgb) {
+        assert!((a - b).abs() < 1e-5);
+    }
+}
+
+#[test]
+fn checkpoints_round_trip_and_are_reproducible() {
+    let cfg = tiny();
+    let a = Colf::init(&cfg, 5).unwrap();
+    let (bytes, id) = a.to_bytes().unwrap();
+    assert_eq!(bytes, Colf::init(&cfg, 5).unwrap().to_bytes().unwrap().0);
+    assert_ne!(id, Colf::init(&cfg, 6).unwrap().identity().unwrap());
+    assert_eq!(id, a.identity().unwrap());
+    assert_eq!(id.len(), 16);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.safetensors");
+    assert_eq!(a.save(&path).unwrap(), id);
+    let b = Colf::load(&path).unwrap();
+    assert_eq!(b.identity().unwrap(), id);
+    assert_eq!(b.config(), &cfg);
+    assert_eq!(b.to_bytes().unwrap().0, bytes);
+    let img = test_image(20);
+    assert_eq!(
+        a.encode(&img, 20, 20, 2, 3).unwrap(),
+        b.encode(&img, 20, 20, 2, 3).unwrap()
+    );
+    // Training changes the identity.
+    let t = b.into_trainable().unwrap();
+    let (name, var) = &t.named_vars()[0];
+    var.set(&(var.as_tensor() + 1.0).unwrap()).unwrap();
+    assert_ne!(t.identity().unwrap(), id, "{name}");
+    assert_ne!(t.to_bytes().unwrap().0, bytes);
+}
+
+/// Rewrites a model file with changed tensors/metadata via the crate's writer.
+fn rewrite(
+    bytes: &[u8],
+    edit: impl FnOnce(
+        &mut std::collections::BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+        &mut std::collections::BTreeMap<String, String>,
+    ),
+) -> Vec<u8> {
+    let file = colf::tensorfile::TensorFile::parse(bytes, "x").unwrap();
+    let mut meta = file.metadata.clone();
+    let mut tensors = std::collections::BTreeMap::new();
+    for name in file.tensors.names() {
+        let view = file.tensors.tensor(name).unwrap();
+        let data: Vec<f32> = view
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        tensors.insert(name.to_string(), (view.shape().to_vec(), data));
+    }
+    edit(&mut tensors, &mut meta);
+    let list: Vec<colf::tensorfile::F32Tensor> = tensors
+        .iter()
+        .map(|(n, (s, d))| colf::tensorfile::F32Tensor {
+            name: n,
+            shape: s.clone(),
+            data: d,
+        })
+        .collect();
+    colf::tensorfile::serialize_f32(&list, &meta)
+}
+
+fn load_err(bytes: &[u8]) -> String {
+    match Colf::from_bytes(bytes, "bad.safetensors") {
+        Ok(_) => panic!("a bad model file was accepted"),
+        Err(e) => format!("{e:#}"),
+    }
+}
+
+#[test]
+fn bad_model_files_are_refused_with_clear_errors() {
+    let cfg = tiny();
+    let (bytes, _) = Colf::init(&cfg, 0).unwrap().to_bytes().unwrap();
+    let fix_id = |t: &std::collections::BTreeMap<String, (Vec<usize>, Vec<f32>)>,
+                  m: &mut std::collections::BTreeMap<String, String>| {
+        let id = colf::model::checkpoint::identity(&m["config"], t);
+        m.insert("identity".into(), id);
+    };
+    let cases: Vec<(Vec<u8>, &str)> = vec![
+        (bytes[..bytes.len() / 2].to_vec(), "not a valid safetensors"),
+        (
+            rewrite(&bytes, |_, m| {
+                m.insert("format".into(), "colf-codes/1".into());
+            }),
+            "not a colf model",
+        ),
+        (
+            rewrite(&bytes, |_, m| {
+                m.remove("config");
+            }),
+            "`config` is missing",
+        ),
+        (
+            rewrite(&bytes, |t, _| {
+                t.get_mut("compositor.gap_log_slope").unwrap().1[0] = 3.0;
+            }),
+            "does not match the file's contents",
+        ),
+        (
+            rewrite(&bytes, |t, m| {
+                t.get_mut("heads.color.layers.0.bias").unwrap().1[0] = f32::NAN;
+                fix_id(t, m);
+            }),
+            "non-finite",
+        ),
+        (
+            rewrite(&bytes, |t, m| {
+                t.remove("encoder.up1.weight");
+                fix_id(t, m);
+            }),
+            "tensor `encoder.up1.weight` is missing",
+        ),
+        (
+            rewrite(&bytes, |t, m| {
+                t.insert("stray".into(), (vec![1], vec![0.0]));
+                fix_id(t, m);
+            }),
+            "unexpected tensor `stray`",
+        ),
+        (
+            rewrite(&bytes, |t, m| {
+                t.insert("compositor.gap_log_slope".into(), (vec![2], vec![0.0, 0.0]));
+                fix_id(t, m);
+            }),
+            "`compositor.gap_log_slope` has shape [2], expected [1]",
+        ),
+    ];
+    for (bad, want) in cases {
+        let msg = load_err(&bad);
+        assert!(msg.starts_with("bad.safetensors"), "{msg}");
+        assert!(msg.contains(want), "expected `{want}` in: {msg}");
+    }
+}
+
+#[test]
+fn generated_light_field_weights_have_kaiming_scale() {
+    let cfg = Config::small();
+    let colf = Colf::init(&cfg, 0).unwrap();
+    let mut rng = StdRng::seed_from_u64(9);
+    let latents: Vec<f32> = (0..16 * cfg.slot_dim)
+        .map(|_| rand_distr::Distribution::sample(&rand_distr::StandardNormal, &mut rng))
+        .collect();
+    let z = Tensor::from_vec(latents, (16, cfg.slot_dim), &Device::Cpu).unwrap();
+    let layers = colf.model().hypernet_fg.forward(&z).unwrap();
+    let dims = cfg.lfn_dims();
+    for (l, layer) in layers.iter().enumerate() {
+        let w = layer
+            .weight
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap();
+        let std = (w.iter().map(|v| v * v).sum::<f32>() / w.len() as f32).sqrt();
+        let gain = if l + 1 == layers.len() {
+            1.0
+        } else {
+            2f32.sqrt()
+        };
+        let kaiming = gain / (dims[l] as f32).sqrt();
+        assert!(
+            std > 0.6 * kaiming && std < 1.6 * kaiming,
+            "layer {l}: std {std}, Kaiming {kaiming}"
+        );
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Any finite ordering values and shifts give finite weights summing to 1.
+    #[test]
+    fn compositor_weights_are_a_distribution(
+        values in proptest::collection::vec((-1e6f32..1e6, 0f32..1e5), 1..40),
+        scale_exp in -3i32..4,
+    ) {
+        let colf = Colf::init(&Config::small(), 0).unwrap();
+        let s = values.len();
+        let mult = 10f32.powi(scale_exp);
+        let ordering: Vec<f32> = values.iter().map(|v| v.0 * mult).collect();
+        let shift: Vec<f32> = values.iter().map(|v| v.1).collect();
+        let dev = Device::Cpu;
+        let ordering = Tensor::from_vec(ordering, (1, 1, s), &dev).unwrap();
+        let shift = Tensor::from_vec(shift, (1, 1, s), &dev).unwrap();
+        let out = colf.model().compositor.forward(&ordering, &shift).unwrap();
+        let w = out.weights.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        prop_assert!(w.iter().all(|x| x.is_finite() && *x >= 0.0));
+        let sum: f32 = w.iter().sum();
+        prop_assert!((sum - 1.0).abs() < 1e-4, "sum {}", sum);
+    }
+}

@@ -1,0 +1,428 @@
+//! CLI tests of `colf-synth`: the real binary in temp dirs — determinism, masks against
+//! scene.json, projection of object centres through the written cameras, `--move`, the dataset
+//! readers (our layout and uORF's), and the error contract.
+
+use assert_cmd::Command;
+use colf::camera::{Cameras, Frame};
+use colf::dataset::{Dataset, Layout};
+use colf::synth::scene::Object;
+use glam::{DMat4, DVec3, DVec4};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+fn synth() -> Command {
+    Command::cargo_bin("colf-synth").unwrap()
+}
+
+/// Runs colf-synth with `args` into `out`, quietly, and asserts success.
+fn generate(out: &Path, args: &[&str]) {
+    let o = synth()
+        .arg("--out")
+        .arg(out)
+        .arg("--quiet")
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{o:?}");
+}
+
+/// Every file under `dir`, relative path → bytes.
+fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
+    fn walk(root: &Path, dir: &Path, out: &mut BTreeMap<PathBuf, Vec<u8>>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.insert(
+                    p.strip_prefix(root).unwrap().to_path_buf(),
+                    std::fs::read(&p).unwrap(),
+                );
+            }
+        }
+    }
+    let mut out = BTreeMap::new();
+    walk(dir, dir, &mut out);
+    out
+}
+
+fn scene_json(dir: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(dir.join("scene.json")).unwrap()).unwrap()
+}
+
+fn objects(scene: &serde_json::Value) -> Vec<Object> {
+    serde_json::from_value(scene["objects"].clone()).unwrap()
+}
+
+fn mask(path: &Path) -> (u32, u32, Vec<u8>) {
+    let img = image::open(path).unwrap();
+    assert_eq!(img.color(), image::ColorType::L8, "{}", path.display());
+    let img = img.to_luma8();
+    (img.width(), img.height(), img.into_raw())
+}
+
+#[test]
+fn same_seed_same_bytes_other_seed_or_split_other_scenes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (a, b, c, d) = (
+        tmp.path().join("a"),
+        tmp.path().join("b"),
+        tmp.path().join("c"),
+        tmp.path().join("d"),
+    );
+    generate(&a, &["--scenes", "3", "--seed", "7"]);
+    generate(&b, &["--scenes", "3", "--seed", "7"]);
+    let (fa, fb) = (files(&a), files(&b));
+    // 3 scenes × (4 views × 2 PNGs + transforms.json + scene.json) + dataset.json.
+    assert_eq!(fa.len(), 3 * 10 + 1);
+    assert!(fa == fb, "same seed gave different files");
+    // A smaller run is a prefix of a larger one: scene i does not depend on --scenes.
+    generate(&c, &["--scenes", "1", "--seed", "7"]);
+    let fc = files(&c);
+    let view = Path::new("scene_00000/view_000.png");
+    assert_eq!(fc[view], fa[view]);
+    generate(&d, &["--scenes", "1", "--seed", "8"]);
+    assert_ne!(files(&d)[view], fa[view]);
+    generate(&d, &["--scenes", "1", "--seed", "7", "--split", "test"]);
+    let fd = files(&d);
+    assert_ne!(fd[view], fa[view]);
+    let json = scene_json(&d.join("scene_00000"));
+    assert_eq!(json["split"], "test");
+}
+
+/// Mask ids never exceed the object count, every object of a CLEVR preset shows up in some
+/// view, and scene.json's per-view pixel counts are the masks' counts.
+#[test]
+fn masks_agree_with_scene_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    for (preset, scenes, all_seen) in [
+        ("clevr567", "6", true),
+        ("packed11", "2", true),
+        ("clevr567-textured", "2", true),
+        ("city", "2", false),
+    ] {
+        let out = tmp.path().join(preset);
+        generate(&out, &["--scenes", scenes, "--preset", preset, "--size", "48"]);
+        let dataset: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("dataset.json")).unwrap()).unwrap();
+        assert_eq!(dataset["preset"], preset);
+        for s in 0..scenes.parse::<usize>().unwrap() {
+            let dir = out.join(format!("scene_{s:05}"));
+            let scene = scene_json(&dir);
+            let objs = objects(&scene);
+            match preset {
+                "clevr567" | "clevr567-textured" => assert!((5..=7).contains(&objs.len())),
+                "packed11" => assert_eq!(objs.len(), 11),
+                _ => assert!(objs.len() >= 2),
+            }
+            let mut seen = vec![false; objs.len()];
+            for v in 0..4 {
+                let (w, h, m) = mask(&dir.join(format!("view_{v:03}.mask.png")));
+                assert_eq!((w, h), (48, 48));
+                let mut counts = vec![0u64; objs.len() + 1];
+                for &id in &m {
+                    assert!((id as usize) <= objs.len(), "{preset}: id {id} in {dir:?}");
+                    counts[id as usize] += 1;
+                }
+                for (k, o) in objs.iter().enumerate() {
+                    assert_eq!(o.visible_pixels[v], counts[k + 1], "{preset} {dir:?}");
+                    seen[k] |= counts[k + 1] > 0;
+                }
+                assert!(counts[0] > 0, "background visible");
+            }
+            if all_seen {
+                assert!(seen.iter().all(|&s| s), "{preset}: an object is never seen");
+            }
+        }
+    }
+}
+
+/// The first object part hit along the segment from `eye` toward `target`, before reaching it:
+/// (object index, distance).
+fn first_object_hit(objs: &[Object], eye: DVec3, target: DVec3) -> Option<(usize, f64)> {
+    let dir = (target - eye).normalize();
+    let dist = (target - eye).length();
+    let mut best: Option<(usize, f64)> = None;
+    for (k, o) in objs.iter().enumerate() {
+        for (solid, _) in o.parts().unwrap() {
+            let t_max = best.map_or(dist, |b| b.1);
+            if let Some(hit) = solid.intersect(eye, dir, t_max) {
+                best = Some((k, hit.t));
+            }
+        }
+    }
+    best
+}
+
+/// Projects each object's centre with the written transforms.json: where the centre's own
+/// surface is the first thing on the line of sight, the mask pixel holding the projection
+/// has the object's id; any other id there must come from a nearer object occluding the
+/// centre. Returns (pairs checked, pairs where the mask showed the object).
+fn check_projection(dir: &Path, objs: &[Object], suffix: &str) -> (usize, usize) {
+    let cams = Cameras::read(dir.join("transforms.json").to_str().unwrap()).unwrap();
+    assert_eq!(cams.frames.len(), 4);
+    let (mut checked, mut direct) = (0, 0);
+    for (v, frame) in cams.frames.iter().enumerate() {
+        assert_eq!(
+            frame.file_path.as_deref(),
+            Some(format!("view_{v:03}.png").as_str())
+        );
+        let k = frame.intrinsics;
+        assert_eq!((k.fl_x, k.fl_y), (1.09375 * k.w as f64, 1.09375 * k.w as f64));
+        assert_eq!((k.cx, k.cy), (0.5 * k.w as f64, 0.5 * k.h as f64));
+        let (w, _, m) = mask(&dir.join(format!("view_{v:03}{suffix}.mask.png")));
+        for (i, o) in objs.iter().enumerate() {
+            let Some((u, vv)) = frame.project(o.center()) else {
+                continue;
+            };
+            if u < 0.0 || vv < 0.0 || u >= k.w as f64 || vv >= k.h as f64 {
+                continue;
+            }
+            checked += 1;
+            let id = m[vv as usize * w as usize + u as usize] as usize;
+            if id == i + 1 {
+                direct += 1;
+                continue;
+            }
+            let hit = first_object_hit(objs, frame.origin(), o.center());
+            let occluded = matches!(hit, Some((j, _)) if j != i);
+            assert!(
+                occluded,
+                "{dir:?} view {v}: object {} projects to ({u:.2}, {vv:.2}) with mask id {id} \
+                 but nothing hides its centre",
+                i + 1
+            );
+        }
+    }
+    (checked, direct)
+}
+
+#[test]
+fn object_centres_project_onto_their_own_mask_ids() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (mut checked, mut direct) = (0, 0);
+    for preset in ["clevr567", "packed11", "city"] {
+        let out = tmp.path().join(preset);
+        generate(&out, &["--scenes", "4", "--preset", preset, "--seed", "3"]);
+        for s in 0..4 {
+            let dir = out.join(format!("scene_{s:05}"));
+            let (c, d) = check_projection(&dir, &objects(&scene_json(&dir)), "");
+            checked += c;
+            direct += d;
+        }
+    }
+    // Not vacuous: most centres are seen directly.
+    assert!(checked >= 80, "{checked}");
+    assert!(direct * 10 >= checked * 7, "{direct} of {checked}");
+}
+
+#[test]
+fn move_renders_the_object_elsewhere_with_the_same_cameras() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("m");
+    generate(&out, &["--scenes", "2", "--move", "2", "1.25", "-0.75"]);
+    for s in 0..2 {
+        let dir = out.join(format!("scene_{s:05}"));
+        let scene = scene_json(&dir);
+        let mut objs = objects(&scene);
+        let before = objs[1].center();
+        let moved: Vec<f64> = serde_json::from_value(scene["moved"]["position"].clone()).unwrap();
+        assert_eq!(scene["moved"]["object"], 2);
+        let after = DVec3::new(moved[0], moved[1], moved[2]);
+        assert!((after - before - DVec3::new(1.25, -0.75, 0.0)).length() < 1e-12);
+        objs[1].position = after.to_array();
+        let (checked, direct) = check_projection(&dir, &objs, ".moved");
+        assert!(checked > 0 && direct > 0);
+        let mut changed = false;
+        for v in 0..4 {
+            assert!(dir.join(format!("view_{v:03}.moved.png")).is_file());
+            let (_, _, a) = mask(&dir.join(format!("view_{v:03}.mask.png")));
+            let (_, _, b) = mask(&dir.join(format!("view_{v:03}.moved.mask.png")));
+            changed |= a.iter().zip(&b).any(|(x, y)| (*x == 2) != (*y == 2));
+        }
+        assert!(changed, "object 2's mask did not move");
+    }
+    // An object some scene lacks is an error before anything is written.
+    let none = tmp.path().join("none");
+    let o = synth()
+        .args(["--scenes", "3", "--quiet", "--move", "9", "0", "0", "--out"])
+        .arg(&none)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8(o.stderr).unwrap();
+    assert!(err.starts_with("colf-synth: error: --move 9: scene 0"), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1);
+    assert!(!none.exists());
+}
+
+#[test]
+fn colf_reader_returns_what_synth_wrote() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("d");
+    generate(&out, &["--scenes", "2", "--size", "32"]);
+    let ds = Dataset::open(&out).unwrap();
+    assert_eq!((ds.layout, ds.len()), (Layout::Colf, 2));
+    let scene = ds.load(1).unwrap();
+    assert_eq!(scene.name, "scene_00001");
+    assert_eq!(scene.views.len(), 4);
+    let cams = Cameras::read(out.join("scene_00001/transforms.json").to_str().unwrap()).unwrap();
+    for (v, view) in scene.views.iter().enumerate() {
+        assert_eq!(view.frame, cams.frames[v]);
+        let png = image::open(out.join(format!("scene_00001/view_{v:03}.png")))
+            .unwrap()
+            .to_rgb8();
+        let expected: Vec<f32> = png.as_raw().iter().map(|&b| b as f32 / 255.0).collect();
+        assert_eq!(view.image.data, expected, "sRGB values as stored");
+        let (_, _, m) = mask(&out.join(format!("scene_00001/view_{v:03}.mask.png")));
+        assert_eq!(view.mask.as_ref(), Some(&m));
+    }
+    // A single scene folder is a dataset of one scene.
+    let one = Dataset::open(out.join("scene_00000")).unwrap();
+    assert_eq!(one.len(), 1);
+}
+
+/// Writes a 4×4 row-major matrix as uORF's `_RT.txt` does.
+fn rt_text(m: &DMat4) -> String {
+    (0..4)
+        .map(|r| {
+            let row = m.row(r);
+            format!("{:.17} {:.17} {:.17} {:.17}\n", row.x, row.y, row.z, row.w)
+        })
+        .collect()
+}
+
+fn write_png(path: &Path, pixels: &[u8], w: u32, h: u32, colour: image::ExtendedColorType) {
+    image::save_buffer(path, pixels, w, h, colour).unwrap();
+}
+
+/// A synthetic scene re-written in the uORF flat layout reads back with the same images and
+/// the same OpenGL cameras (its RT files hold OpenCV axes).
+#[test]
+fn uorf_reader_converts_cameras_from_opencv_axes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("colf");
+    generate(&out, &["--scenes", "1", "--size", "32"]);
+    let colf = Dataset::open(&out).unwrap().load(0).unwrap();
+    let uorf = tmp.path().join("uorf");
+    std::fs::create_dir(&uorf).unwrap();
+    let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
+    for (v, view) in colf.views.iter().enumerate() {
+        // Index numbers need not follow the view order: views are ordered by az.
+        let stem = format!("{:05}_sc0005_az{v:02}", 10 - v);
+        std::fs::copy(&view.path, uorf.join(format!("{stem}.png"))).unwrap();
+        let opencv = view.frame.camera_to_world * flip;
+        std::fs::write(uorf.join(format!("{stem}_RT.txt")), rt_text(&opencv)).unwrap();
+    }
+    let ds = Dataset::open(&uorf).unwrap();
+    assert_eq!((ds.layout, ds.len()), (Layout::Uorf, 1));
+    assert_eq!(ds.scene_name(0), "sc0005");
+    let scene = ds.load(0).unwrap();
+    assert_eq!(scene.views.len(), 4);
+    for (a, b) in colf.views.iter().zip(&scene.views) {
+        assert_eq!(a.image, b.image);
+        assert!(b.mask.is_none());
+        let diff = (a.frame.camera_to_world - b.frame.camera_to_world)
+            .to_cols_array()
+            .iter()
+            .fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(diff < 1e-12, "{diff}");
+        let k = b.frame.intrinsics;
+        assert_eq!((k.fl_x, k.fl_y, k.cx, k.cy), (35.0, 1.4583 * 32.0, 16.0, 16.0));
+        // The world origin (every clevr camera's target) projects to the image centre.
+        let (u, v) = b.frame.project(DVec3::ZERO).unwrap();
+        assert!((u - 16.0).abs() < 1e-9 && (v - 16.0).abs() < 1e-9);
+    }
+}
+
+/// uORF masks: per view the second-smallest grey level is the background; the other levels
+/// get ids in increasing grey order, consistently across the scene's views; RGB masks are
+/// turned grey as PIL does.
+#[test]
+fn uorf_reader_maps_mask_levels_to_ids() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let pose = |x: f64| {
+        colf::camera::look_at(DVec3::new(x, -8.0, 6.0), DVec3::ZERO, DVec3::Z).unwrap()
+            * DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0))
+    };
+    // Grey levels: 10 = an object in every view, 60 = background, 100 and 200 = objects.
+    let views: [[u8; 4]; 2] = [[10, 60, 100, 200], [10, 60, 60, 200]];
+    for scene in [3u32, 1] {
+        for (v, levels) in views.iter().enumerate() {
+            let stem = format!("{:05}_sc{scene:04}_az{v:02}", scene * 2 + v as u32);
+            let image: Vec<u8> = (0..2 * 2 * 3).map(|i| (i * 20 + v) as u8).collect();
+            write_png(
+                &dir.join(format!("{stem}.png")),
+                &image,
+                2,
+                2,
+                image::ExtendedColorType::Rgb8,
+            );
+            let rgb: Vec<u8> = levels.iter().flat_map(|&l| [l, l, l]).collect();
+            write_png(
+                &dir.join(format!("{stem}_mask.png")),
+                &rgb,
+                2,
+                2,
+                image::ExtendedColorType::Rgb8,
+            );
+            std::fs::write(dir.join(format!("{stem}_RT.txt")), rt_text(&pose(v as f64))).unwrap();
+        }
+    }
+    let ds = Dataset::open(dir).unwrap();
+    assert_eq!(ds.len(), 2);
+    assert_eq!(ds.scene_name(0), "sc0001");
+    let scene = ds.load(0).unwrap();
+    assert_eq!(scene.views[0].mask.as_deref(), Some(&[1u8, 0, 2, 3][..]));
+    assert_eq!(scene.views[1].mask.as_deref(), Some(&[1u8, 0, 0, 3][..]));
+    let expected: Vec<f32> = (0..12).map(|i| (i * 20 + 1) as f32 / 255.0).collect();
+    assert_eq!(scene.views[1].image.data, expected);
+    let frame: &Frame = &scene.views[1].frame;
+    assert!((frame.origin() - DVec3::new(1.0, -8.0, 6.0)).length() < 1e-12);
+    // OpenGL axes after conversion: the camera looks along −Z at the origin.
+    let forward = frame.camera_to_world.transform_vector3(-DVec3::Z);
+    assert!((forward - (-frame.origin()).normalize()).length() < 1e-12);
+    // A broken RT file is a clear error naming it.
+    std::fs::write(dir.join("00002_sc0001_az00_RT.txt"), "1 0 0").unwrap();
+    let msg = format!("{:#}", ds.load(0).unwrap_err());
+    assert!(msg.contains("00002_sc0001_az00_RT.txt"), "{msg}");
+}
+
+#[test]
+fn bad_arguments_fail_with_the_right_exit_code() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("o");
+    for args in [
+        vec!["--scenes", "0"],
+        vec!["--scenes", "2", "--preset", "mars"],
+        vec!["--scenes", "2", "--size", "3"],
+        vec!["--scenes", "2", "--move", "1.5", "0", "0"],
+        vec!["--scenes", "2", "--move", "1", "0"],
+        vec!["--scenes", "2", "--split", "val"],
+    ] {
+        let o = synth().arg("--out").arg(&out).args(&args).output().unwrap();
+        assert_eq!(o.status.code(), Some(2), "{args:?}: {o:?}");
+        let err = String::from_utf8(o.stderr).unwrap();
+        assert!(err.starts_with("error:"), "{err}");
+    }
+    let o = synth().args(["--out", "x"]).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "missing --scenes");
+    // Not a usage error: --out names a file.
+    let file = tmp.path().join("file");
+    std::fs::write(&file, b"x").unwrap();
+    let o = synth()
+        .arg("--out")
+        .arg(&file)
+        .args(["--scenes", "1"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8(o.stderr).unwrap();
+    assert!(
+        err.starts_with("colf-synth: error: ") && err.contains("not a folder"),
+        "{err}"
+    );
+    assert_eq!(err.trim_end().lines().count(), 1);
+    assert!(!out.exists());
+}
