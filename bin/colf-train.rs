@@ -1,13 +1,14 @@
 use clap::Parser;
-use colf::cli::train::{TrainArgs, TrainCommand};
+use colf::cli::train::{run_training, TrainArgs, TrainCommand};
 
 fn main() {
     let args = TrainArgs::parse();
     colf::cli::run("train", || match &args.command {
-        TrainCommand::Init(init) => {
+        Some(TrainCommand::Init(init)) => {
             let summary = colf::model::init_model_file(&init.preset, init.seed, &init.output)?;
             eprintln!("colf-train: {summary}");
             Ok(())
         }
+        None => run_training(&args.run),
     })
 }

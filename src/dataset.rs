@@ -141,7 +141,12 @@ impl Dataset {
                 rt,
                 mask: mask.is_file().then_some(mask),
             };
-            if by_scene.entry(scene).or_default().insert(az, view).is_some() {
+            if by_scene
+                .entry(scene)
+                .or_default()
+                .insert(az, view)
+                .is_some()
+            {
                 bail!("{shown}: scene {scene} has two images of view az{az:02}");
             }
         }
@@ -220,9 +225,10 @@ fn load_colf(dir: &Path) -> Result<Vec<View>> {
         .into_iter()
         .enumerate()
         .map(|(i, frame)| {
-            let file = frame.file_path.clone().ok_or_else(|| {
-                anyhow!("{}: frame {i} has no file_path", transforms.display())
-            })?;
+            let file = frame
+                .file_path
+                .clone()
+                .ok_or_else(|| anyhow!("{}: frame {i} has no file_path", transforms.display()))?;
             let path = dir.join(&file);
             let shown = path.display().to_string();
             let image = decode_rgb(&read(&path)?, &shown)?;
@@ -253,8 +259,12 @@ fn load_colf(dir: &Path) -> Result<Vec<View>> {
 
 /// Grey levels of a uORF mask, as PIL's `convert("L")` computes them for colour images.
 pub fn uorf_mask_levels(bytes: &[u8], name: &str) -> Result<(u32, u32, Vec<u8>)> {
-    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
-        .map_err(|e| anyhow!("{name}: not a valid PNG image: {}", e.to_string().replace('\n', " ")))?;
+    let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png).map_err(|e| {
+        anyhow!(
+            "{name}: not a valid PNG image: {}",
+            e.to_string().replace('\n', " ")
+        )
+    })?;
     let (w, h) = (img.width(), img.height());
     let levels = match img {
         image::DynamicImage::ImageLuma8(b) => b.into_raw(),
@@ -285,11 +295,14 @@ fn load_uorf(views: &[UorfView]) -> Result<Vec<View>> {
     for v in views {
         let shown = v.image.display().to_string();
         let image = decode_rgb(&read(&v.image)?, &shown)?;
-        let rt_text = String::from_utf8(read(&v.rt)?)
-            .map_err(|_| anyhow!("{}: not text", v.rt.display()))?;
+        let rt_text =
+            String::from_utf8(read(&v.rt)?).map_err(|_| anyhow!("{}: not text", v.rt.display()))?;
         let camera_to_world = Cameras::uorf_pose_from_text(&rt_text, &v.rt.display().to_string())?;
         let frame = Frame {
-            file_path: v.image.file_name().map(|n| n.to_string_lossy().into_owned()),
+            file_path: v
+                .image
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned()),
             intrinsics: Cameras::uorf_intrinsics(image.w, image.h),
             camera_to_world,
         };

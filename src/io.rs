@@ -47,7 +47,17 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         _ => Path::new("."),
     };
     let shown = path.display();
-    let mut tmp = tempfile::Builder::new()
+    // Outputs are ordinary files: readable by others, like any file a shell redirect makes
+    // (tempfile's default of 0600 would otherwise survive the rename).
+    #[cfg(unix)]
+    let permissions = {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::Permissions::from_mode(0o644)
+    };
+    let mut builder = tempfile::Builder::new();
+    #[cfg(unix)]
+    builder.permissions(permissions);
+    let mut tmp = builder
         .prefix(".colf-tmp-")
         .tempfile_in(dir)
         .with_context(|| {
@@ -103,6 +113,17 @@ mod tests {
         assert_eq!(std::fs::read(&target).unwrap(), b"second");
         let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
         assert_eq!(names.len(), 1, "temporary files were left behind");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn atomic_write_makes_a_world_readable_file() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("out.bin");
+        write_atomic(&target, b"x").unwrap();
+        let mode = std::fs::metadata(&target).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o644);
     }
 
     #[test]

@@ -22,6 +22,7 @@ pub mod codes;
 pub mod dataset;
 pub mod edit;
 pub mod encode;
+pub mod evaluate;
 pub mod image_io;
 pub mod io;
 pub mod metrics;

@@ -5,7 +5,8 @@
 use assert_cmd::Command;
 use colf::camera::{Cameras, Frame};
 use colf::dataset::{Dataset, Layout};
-use colf::synth::scene::Object;
+use colf::synth::geometry::Solid;
+use colf::synth::scene::{Building, Object};
 use glam::{DMat4, DVec3, DVec4};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -102,7 +103,10 @@ fn masks_agree_with_scene_json() {
         ("city", "2", false),
     ] {
         let out = tmp.path().join(preset);
-        generate(&out, &["--scenes", scenes, "--preset", preset, "--size", "48"]);
+        generate(
+            &out,
+            &["--scenes", scenes, "--preset", preset, "--size", "48"],
+        );
         let dataset: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("dataset.json")).unwrap()).unwrap();
         assert_eq!(dataset["preset"], preset);
@@ -137,30 +141,46 @@ fn masks_agree_with_scene_json() {
     }
 }
 
-/// The first object part hit along the segment from `eye` toward `target`, before reaching it:
-/// (object index, distance).
-fn first_object_hit(objs: &[Object], eye: DVec3, target: DVec3) -> Option<(usize, f64)> {
-    let dir = (target - eye).normalize();
-    let dist = (target - eye).length();
-    let mut best: Option<(usize, f64)> = None;
+/// Scene geometry from scene.json: every solid with its mask id (0 = background building).
+fn solids(scene: &serde_json::Value, objs: &[Object]) -> Vec<(Solid, u8)> {
+    let mut out = Vec::new();
     for (k, o) in objs.iter().enumerate() {
         for (solid, _) in o.parts().unwrap() {
-            let t_max = best.map_or(dist, |b| b.1);
-            if let Some(hit) = solid.intersect(eye, dir, t_max) {
-                best = Some((k, hit.t));
-            }
+            out.push((solid, (k + 1) as u8));
         }
     }
-    best
+    if let Some(b) = scene.get("buildings") {
+        let buildings: Vec<Building> = serde_json::from_value(b.clone()).unwrap();
+        out.extend(buildings.iter().map(|b| (b.solid(), 0)));
+    }
+    out
 }
 
-/// Projects each object's centre with the written transforms.json: where the centre's own
-/// surface is the first thing on the line of sight, the mask pixel holding the projection
-/// has the object's id; any other id there must come from a nearer object occluding the
-/// centre. Returns (pairs checked, pairs where the mask showed the object).
-fn check_projection(dir: &Path, objs: &[Object], suffix: &str) -> (usize, usize) {
+/// Mask id of the first solid along the ray (0 if none: ground or sky).
+fn first_id(solids: &[(Solid, u8)], origin: DVec3, dir: DVec3) -> u8 {
+    let mut best = (f64::INFINITY, 0u8);
+    for (solid, id) in solids {
+        if let Some(hit) = solid.intersect(origin, dir, best.0) {
+            best = (hit.t, *id);
+        }
+    }
+    best.1
+}
+
+/// Projects each object's centre with the written transforms.json and looks at the mask pixel
+/// holding the projection. Its id must be what the line of sight through that pixel's centre
+/// (the ray the mask is sampled on) meets first in the scene.json geometry: the object itself
+/// when unoccluded, else the nearer occluder. Returns (pairs checked, pairs where the mask
+/// showed the object itself).
+fn check_projection(
+    dir: &Path,
+    scene: &serde_json::Value,
+    objs: &[Object],
+    suffix: &str,
+) -> (usize, usize) {
     let cams = Cameras::read(dir.join("transforms.json").to_str().unwrap()).unwrap();
     assert_eq!(cams.frames.len(), 4);
+    let solids = solids(scene, objs);
     let (mut checked, mut direct) = (0, 0);
     for (v, frame) in cams.frames.iter().enumerate() {
         assert_eq!(
@@ -168,7 +188,10 @@ fn check_projection(dir: &Path, objs: &[Object], suffix: &str) -> (usize, usize)
             Some(format!("view_{v:03}.png").as_str())
         );
         let k = frame.intrinsics;
-        assert_eq!((k.fl_x, k.fl_y), (1.09375 * k.w as f64, 1.09375 * k.w as f64));
+        assert_eq!(
+            (k.fl_x, k.fl_y),
+            (1.09375 * k.w as f64, 1.09375 * k.w as f64)
+        );
         assert_eq!((k.cx, k.cy), (0.5 * k.w as f64, 0.5 * k.h as f64));
         let (w, _, m) = mask(&dir.join(format!("view_{v:03}{suffix}.mask.png")));
         for (i, o) in objs.iter().enumerate() {
@@ -179,19 +202,20 @@ fn check_projection(dir: &Path, objs: &[Object], suffix: &str) -> (usize, usize)
                 continue;
             }
             checked += 1;
-            let id = m[vv as usize * w as usize + u as usize] as usize;
-            if id == i + 1 {
-                direct += 1;
-                continue;
-            }
-            let hit = first_object_hit(objs, frame.origin(), o.center());
-            let occluded = matches!(hit, Some((j, _)) if j != i);
-            assert!(
-                occluded,
-                "{dir:?} view {v}: object {} projects to ({u:.2}, {vv:.2}) with mask id {id} \
-                 but nothing hides its centre",
+            let (pi, pj) = (u as u32, vv as u32);
+            let id = m[pj as usize * w as usize + pi as usize];
+            let ray = frame.pixel_ray(pi, pj);
+            let expected = first_id(&solids, ray.origin, ray.direction);
+            assert_eq!(
+                id,
+                expected,
+                "{dir:?} view {v}: object {} projects to ({u:.2}, {vv:.2}), mask id {id}, \
+                 line of sight meets {expected}",
                 i + 1
             );
+            if id as usize == i + 1 {
+                direct += 1;
+            }
         }
     }
     (checked, direct)
@@ -206,7 +230,8 @@ fn object_centres_project_onto_their_own_mask_ids() {
         generate(&out, &["--scenes", "4", "--preset", preset, "--seed", "3"]);
         for s in 0..4 {
             let dir = out.join(format!("scene_{s:05}"));
-            let (c, d) = check_projection(&dir, &objects(&scene_json(&dir)), "");
+            let scene = scene_json(&dir);
+            let (c, d) = check_projection(&dir, &scene, &objects(&scene), "");
             checked += c;
             direct += d;
         }
@@ -231,7 +256,7 @@ fn move_renders_the_object_elsewhere_with_the_same_cameras() {
         let after = DVec3::new(moved[0], moved[1], moved[2]);
         assert!((after - before - DVec3::new(1.25, -0.75, 0.0)).length() < 1e-12);
         objs[1].position = after.to_array();
-        let (checked, direct) = check_projection(&dir, &objs, ".moved");
+        let (checked, direct) = check_projection(&dir, &scene, &objs, ".moved");
         assert!(checked > 0 && direct > 0);
         let mut changed = false;
         for v in 0..4 {
@@ -251,7 +276,10 @@ fn move_renders_the_object_elsewhere_with_the_same_cameras() {
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8(o.stderr).unwrap();
-    assert!(err.starts_with("colf-synth: error: --move 9: scene 0"), "{err}");
+    assert!(
+        err.starts_with("colf-synth: error: --move 9: scene 0"),
+        "{err}"
+    );
     assert_eq!(err.trim_end().lines().count(), 1);
     assert!(!none.exists());
 }
@@ -328,7 +356,10 @@ fn uorf_reader_converts_cameras_from_opencv_axes() {
             .fold(0.0f64, |m, x| m.max(x.abs()));
         assert!(diff < 1e-12, "{diff}");
         let k = b.frame.intrinsics;
-        assert_eq!((k.fl_x, k.fl_y, k.cx, k.cy), (35.0, 1.4583 * 32.0, 16.0, 16.0));
+        assert_eq!(
+            (k.fl_x, k.fl_y, k.cx, k.cy),
+            (35.0, 1.4583 * 32.0, 16.0, 16.0)
+        );
         // The world origin (every clevr camera's target) projects to the image centre.
         let (u, v) = b.frame.project(DVec3::ZERO).unwrap();
         assert!((u - 16.0).abs() < 1e-9 && (v - 16.0).abs() < 1e-9);
@@ -425,4 +456,36 @@ fn bad_arguments_fail_with_the_right_exit_code() {
     );
     assert_eq!(err.trim_end().lines().count(), 1);
     assert!(!out.exists());
+}
+
+/// The committed examples in testdata/synth/ are what seed 0 renders (pixels compared, so a
+/// PNG encoder update does not matter; a change of the scene distribution or the renderer
+/// does, and the examples must then be regenerated on purpose).
+#[test]
+fn committed_examples_are_reproduced() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("testdata/synth");
+    for (preset, file, suffix) in [
+        ("clevr567", "clevr567_seed0_scene00000_view_000.png", ".png"),
+        (
+            "clevr567",
+            "clevr567_seed0_scene00000_view_000.mask.png",
+            ".mask.png",
+        ),
+        (
+            "clevr567-textured",
+            "clevr567-textured_seed0_scene00000_view_000.png",
+            ".png",
+        ),
+        ("city", "city_seed0_scene00000_view_000.png", ".png"),
+    ] {
+        let out = tmp.path().join(preset);
+        if !out.exists() {
+            generate(&out, &["--scenes", "1", "--preset", preset]);
+        }
+        let fresh = image::open(out.join(format!("scene_00000/view_000{suffix}"))).unwrap();
+        let committed = image::open(data.join(file)).unwrap();
+        assert_eq!(fresh.color(), committed.color(), "{file}");
+        assert!(fresh.as_bytes() == committed.as_bytes(), "{file} differs");
+    }
 }

@@ -33,5 +33,7 @@ pub fn commands() -> Vec<clap::Command> {
         render::RenderArgs::command(),
         cameras::CamerasArgs::command(),
         eval::EvalArgs::command(),
+        synth::SynthArgs::command(),
+        train::TrainArgs::command(),
     ]
 }

@@ -119,8 +119,17 @@ mod tests {
         assert_eq!((a.preset, a.split), (Preset::Clevr567, Split::Train));
         assert_eq!(a.move_spec().unwrap(), None);
         let a = SynthArgs::try_parse_from([
-            "colf-synth", "--out", "x", "--scenes", "3", "--move", "2", "-1.5", "0.25",
-            "--preset", "clevr567-textured",
+            "colf-synth",
+            "--out",
+            "x",
+            "--scenes",
+            "3",
+            "--move",
+            "2",
+            "-1.5",
+            "0.25",
+            "--preset",
+            "clevr567-textured",
         ])
         .unwrap();
         assert_eq!(
@@ -147,7 +156,15 @@ mod tests {
             assert!(SynthArgs::try_parse_from(&argv).is_err(), "{argv:?}");
         }
         let a = SynthArgs::try_parse_from([
-            "colf-synth", "--out", "x", "--scenes", "2", "--move", "1.5", "0", "0",
+            "colf-synth",
+            "--out",
+            "x",
+            "--scenes",
+            "2",
+            "--move",
+            "1.5",
+            "0",
+            "0",
         ])
         .unwrap();
         assert!(a.validate().unwrap_err().contains("whole number"));

@@ -14,13 +14,137 @@ model's config and its identity; see docs/model.md).\n\n\
 generator seeded by --seed and the weight's name, so the same preset and seed give a \
 byte-identical file. Presets: small (trains on a 2-core CPU: 64x64 encoder input, 32x32 \
 tokens, slot dimension 64, about 3 M parameters) and paper (the sizes of the COLF supplement: \
-128x128 encoder input, slot dimension 128, light fields with 2 hidden layers of 256 units).",
+128x128 encoder input, slot dimension 128, light fields with 2 hidden layers of 256 units).\n\n\
+`colf-train --data DIR --out MODEL` trains: each step takes --batch scenes, encodes one random \
+view of each, and supervises --rays random rays in each of --views views (the input view and \
+novel views) with an L2 loss (+ --l1-weight L1) and a small penalty on the foreground latents; \
+Adam with a linear warm-up. Every step draws its randomness from (--seed, step), so a run \
+resumed with --resume from OUT.ckpt takes exactly the steps an uninterrupted run would. The \
+model file OUT and the checkpoint OUT.ckpt (model + optimizer moments + step, one file) are \
+written atomically every --checkpoint-every steps, at the end, and on SIGINT/SIGTERM. Every \
+step appends a JSON line to OUT.log.jsonl: step, loss, mse, psnr, obj_psnr (rays on objects), \
+fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s; \
+evaluations on --eval-data add lines with an \"eval\" object. A step with a non-finite loss or \
+gradient is skipped and counted; more than --max-bad-steps abort the run.",
     after_help = "Examples:\n  colf-train init --preset small --seed 0 -o models/default.safetensors\n  \
-colf-train init --preset paper -o paper-init.safetensors"
+colf-train init --preset paper -o paper-init.safetensors\n  \
+colf-train --data data/train --eval-data data/test --out model.safetensors --steps 20000\n  \
+colf-train --data data/train --out model.safetensors --steps 40000 --resume"
 )]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct TrainArgs {
     #[command(subcommand)]
-    pub command: TrainCommand,
+    pub command: Option<TrainCommand>,
+
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// Options of a training run (`colf-train --data DIR --out MODEL ...`).
+#[derive(Args, Debug, Clone)]
+pub struct RunArgs {
+    /// Training data: a colf-synth folder or a uORF-layout folder.
+    #[arg(long, value_name = "DIR", required = true)]
+    pub data: Option<std::path::PathBuf>,
+
+    /// Model file to write (at every checkpoint and at the end). The checkpoint is OUT.ckpt,
+    /// the JSON-lines log OUT.log.jsonl.
+    #[arg(long, value_name = "MODEL", required = true)]
+    pub out: Option<std::path::PathBuf>,
+
+    /// Start from this model (curriculum: e.g. clevr567, then harder scenes).
+    #[arg(long, value_name = "MODEL", conflicts_with = "resume")]
+    pub init: Option<std::path::PathBuf>,
+
+    /// Continue the run saved in OUT.ckpt (model, optimizer moments and step) up to --steps.
+    #[arg(long)]
+    pub resume: bool,
+
+    /// Size preset of a fresh model (without --init or --resume).
+    #[arg(long, value_name = "PRESET", value_parser = ["small", "paper"], default_value = "small")]
+    pub preset: String,
+
+    /// Total optimisation steps.
+    #[arg(long, default_value_t = 10_000, value_name = "N")]
+    pub steps: u64,
+
+    /// Scenes per batch.
+    #[arg(long, default_value_t = 4, value_name = "B")]
+    pub batch: usize,
+
+    /// Views supervised per scene: the encoded input view and VIEWS-1 novel views.
+    #[arg(long, default_value_t = 2, value_name = "V")]
+    pub views: usize,
+
+    /// Random rays supervised per view.
+    #[arg(long, default_value_t = 512, value_name = "R")]
+    pub rays: usize,
+
+    /// Foreground slots (default: the model's).
+    #[arg(long, value_name = "K")]
+    pub slots: Option<usize>,
+
+    /// Adam learning rate.
+    #[arg(long, default_value_t = 2e-4, value_name = "LR")]
+    pub lr: f64,
+
+    /// Linear learning-rate warm-up, in steps.
+    #[arg(long, default_value_t = 500, value_name = "N")]
+    pub warmup: u64,
+
+    /// Weight of an L1 colour loss added to the L2 loss.
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub l1_weight: f64,
+
+    /// Weight of the mean squared foreground latent (keeps slot codes small).
+    #[arg(long, default_value_t = 1e-4, value_name = "W")]
+    pub latent_weight: f64,
+
+    /// Weak supervision: cross-entropy between compositor weights and ground-truth masks, objects
+    /// matched to slots by the Hungarian method (0 = unsupervised, the default).
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub mask_weight: f64,
+
+    /// Share of each view's rays drawn from ground-truth object pixels (uses masks; 0 = uniform).
+    #[arg(long, default_value_t = 0.0, value_name = "F")]
+    pub object_fraction: f64,
+
+    /// Render the background from a zero latent, so it cannot depend on the image (the paper's
+    /// choice for CLEVR).
+    #[arg(long)]
+    pub zero_background: bool,
+
+    /// Seed of the data order, ray sampling, slot noise and (fresh models) initialisation.
+    #[arg(long, default_value_t = 0, value_name = "S")]
+    pub seed: u64,
+
+    /// Write the model and checkpoint every N steps (and on SIGINT/SIGTERM, and at the end).
+    #[arg(long, default_value_t = 500, value_name = "N")]
+    pub checkpoint_every: u64,
+
+    /// Held-out data evaluated during training (PSNR, FG-ARI, foreground share...).
+    #[arg(long, value_name = "DIR")]
+    pub eval_data: Option<std::path::PathBuf>,
+
+    /// Evaluate every N steps (0: never).
+    #[arg(long, default_value_t = 1000, value_name = "N")]
+    pub eval_every: u64,
+
+    /// Scenes of --eval-data used per evaluation.
+    #[arg(long, default_value_t = 8, value_name = "N")]
+    pub eval_scenes: usize,
+
+    /// Use only the first N training scenes (overfitting checks).
+    #[arg(long, value_name = "N")]
+    pub max_scenes: Option<usize>,
+
+    /// Abort after this many steps with a non-finite loss or gradient.
+    #[arg(long, default_value_t = 50, value_name = "N")]
+    pub max_bad_steps: u64,
+
+    /// Print a progress line every N steps when stderr is not a terminal.
+    #[arg(long, default_value_t = 50, value_name = "N")]
+    pub print_every: u64,
 }
 
 /// The subcommands of colf-train.
@@ -50,4 +174,128 @@ pub struct InitArgs {
     /// Where to write the model (`-`: stdout).
     #[arg(short, long, value_name = "MODEL")]
     pub output: String,
+}
+
+/// Runs a training run with progress on stderr.
+pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
+    use crate::train::trainer::{TrainOptions, Trainer};
+    use std::io::{IsTerminal, Write};
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+
+    let (Some(data), Some(out)) = (args.data.clone(), args.out.clone()) else {
+        anyhow::bail!("--data and --out are required");
+    };
+    let opts = TrainOptions {
+        data,
+        out,
+        init: args.init.clone(),
+        preset: args.preset.clone(),
+        steps: args.steps,
+        batch_scenes: args.batch,
+        views_per_scene: args.views,
+        rays_per_view: args.rays,
+        slots: args.slots,
+        lr: args.lr,
+        warmup: args.warmup,
+        l1_weight: args.l1_weight,
+        latent_weight: args.latent_weight,
+        mask_weight: args.mask_weight,
+        object_fraction: args.object_fraction,
+        zero_background: args.zero_background,
+        seed: args.seed,
+        checkpoint_every: args.checkpoint_every,
+        eval_every: args.eval_every,
+        eval_data: args.eval_data.clone(),
+        eval_scenes: args.eval_scenes,
+        max_bad_steps: args.max_bad_steps,
+        max_scenes: args.max_scenes,
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(signal, Arc::clone(&stop))?;
+    }
+    let mut trainer = Trainer::new(opts, args.resume)?;
+    let log_path = trainer.opts.log_path();
+    let mut log_file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .map_err(|e| anyhow::anyhow!("{}: cannot open the log: {e}", log_path.display()))?;
+    eprintln!(
+        "colf-train: {} scenes, {} parameters, step {} of {}, log {}",
+        trainer.num_scenes(),
+        trainer.model().num_parameters(),
+        trainer.step,
+        args.steps,
+        log_path.display()
+    );
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(args.steps);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} {msg} [{elapsed} < {eta}]",
+            )
+            .expect("template"),
+        );
+        bar.set_position(trainer.step);
+        bar
+    });
+    let print_every = args.print_every.max(1);
+    let mut write_error = None;
+    trainer.run(&stop, |line| {
+        if write_error.is_none() {
+            if let Err(e) = writeln!(log_file, "{line}") {
+                write_error = Some(e);
+            }
+        }
+        let step = line["step"].as_u64().unwrap_or(0);
+        let text = if let Some(eval) = line.get("eval") {
+            format!("eval @ {step}: {eval}")
+        } else {
+            format!(
+                "loss {:.5} psnr {:.2} obj {:.2} fg {:.3} fg-ari {:.3} slots {:.1} {:.0} rays/s",
+                line["loss"].as_f64().unwrap_or(f64::NAN),
+                line["psnr"].as_f64().unwrap_or(f64::NAN),
+                line["obj_psnr"].as_f64().unwrap_or(f64::NAN),
+                line["fg_share"].as_f64().unwrap_or(f64::NAN),
+                line["fg_ari"].as_f64().unwrap_or(f64::NAN),
+                line["slots_used"].as_f64().unwrap_or(f64::NAN),
+                line["rays_per_s"].as_f64().unwrap_or(f64::NAN),
+            )
+        };
+        match &bar {
+            Some(bar) => {
+                bar.set_position(step + 1);
+                if line.get("eval").is_some() {
+                    bar.println(text);
+                } else {
+                    bar.set_message(text);
+                }
+            }
+            None => {
+                if line.get("eval").is_some() || (step + 1) % print_every == 0 {
+                    eprintln!("colf-train: step {} {text}", step + 1);
+                }
+            }
+        }
+    })?;
+    if let Some(bar) = bar {
+        bar.finish();
+    }
+    if let Some(e) = write_error {
+        anyhow::bail!("{}: writing the log failed: {e}", log_path.display());
+    }
+    eprintln!(
+        "colf-train: stopped at step {} ({}); model {}, checkpoint {}",
+        trainer.step,
+        if trainer.step >= args.steps {
+            "done"
+        } else {
+            "interrupted"
+        },
+        trainer.opts.out.display(),
+        trainer.opts.checkpoint_path().display()
+    );
+    Ok(())
 }

@@ -84,14 +84,22 @@ impl Mlp {
 }
 
 impl Module for Mlp {
+    /// x [.., in] → [.., out]; leading axes are flattened so every layer is one plain 2-D
+    /// matmul (candle's `Linear` on 3-D input takes a slower broadcast path).
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        let mut x = x.clone();
+        let dims = x.dims().to_vec();
+        let inner = dims[dims.len() - 1];
+        let rows = x.elem_count() / inner.max(1);
+        let mut x = x.reshape((rows, inner))?;
         for (i, layer) in self.layers.iter().enumerate() {
             x = layer.forward(&x)?;
             if i + 1 < self.layers.len() {
                 x = x.relu()?;
             }
         }
-        Ok(x)
+        let mut out_dims = dims;
+        let last = out_dims.len() - 1;
+        out_dims[last] = x.dim(1)?;
+        x.reshape(out_dims)
     }
 }

@@ -136,10 +136,7 @@ pub fn sample(
                 }
             }
         }
-        let seen = pixels
-            .iter()
-            .filter(|p| p.iter().any(|&n| n > 0))
-            .count();
+        let seen = pixels.iter().filter(|p| p.iter().any(|&n| n > 0)).count();
         if best.as_ref().is_none_or(|b| seen > b.0) {
             best = Some((seen, cameras, pixels));
         }
@@ -183,7 +180,13 @@ fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path
         let view = tracer.render(frame);
         let stem = view_stem(v);
         writer::write_png(&dir.join(format!("{stem}.png")), &view.rgb, size, size, 3)?;
-        writer::write_png(&dir.join(format!("{stem}.mask.png")), &view.mask, size, size, 1)?;
+        writer::write_png(
+            &dir.join(format!("{stem}.mask.png")),
+            &view.mask,
+            size,
+            size,
+            1,
+        )?;
     }
     let mut moved_json = serde_json::Value::Null;
     if let Some(m) = moved {
@@ -199,7 +202,13 @@ fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path
         for (v, frame) in sampled.frames.iter().enumerate() {
             let view = tracer.render(frame);
             let stem = view_stem(v);
-            writer::write_png(&dir.join(format!("{stem}.moved.png")), &view.rgb, size, size, 3)?;
+            writer::write_png(
+                &dir.join(format!("{stem}.moved.png")),
+                &view.rgb,
+                size,
+                size,
+                3,
+            )?;
             writer::write_png(
                 &dir.join(format!("{stem}.moved.mask.png")),
                 &view.mask,

@@ -15,7 +15,7 @@ use serde::Serialize;
 /// A scene distribution.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
 pub enum Preset {
-    /// CLEVR-567: 5–7 CLEVR shapes on a grey floor (the DESIGN.md contract).
+    /// CLEVR-567: 5-7 CLEVR shapes on a grey floor (the DESIGN.md contract).
     #[value(name = "clevr567")]
     #[serde(rename = "clevr567")]
     Clevr567,
@@ -345,12 +345,17 @@ mod tests {
                     assert!(a.position[0].abs() <= 3.0 && a.position[1].abs() <= 3.0);
                     assert!([0.35, 0.7].contains(&a.size));
                     for b in &scene.objects[i + 1..] {
-                        let d = (a.position[0] - b.position[0]).hypot(a.position[1] - b.position[1]);
+                        let d =
+                            (a.position[0] - b.position[0]).hypot(a.position[1] - b.position[1]);
                         assert!(d > a.size + b.size, "objects interpenetrate");
                     }
                 }
             }
-            assert_eq!(counts.len(), range.count(), "{preset:?}: every count occurs");
+            assert_eq!(
+                counts.len(),
+                range.count(),
+                "{preset:?}: every count occurs"
+            );
         }
     }
 

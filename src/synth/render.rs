@@ -111,9 +111,11 @@ impl Tracer {
     /// Whether anything blocks the light from point `p` (the ground never does: the light is
     /// above the horizon).
     fn in_shadow(&self, p: DVec3) -> bool {
-        self.parts
-            .iter()
-            .any(|part| part.solid.intersect(p, self.to_light, f64::INFINITY).is_some())
+        self.parts.iter().any(|part| {
+            part.solid
+                .intersect(p, self.to_light, f64::INFINITY)
+                .is_some()
+        })
     }
 
     /// Linear radiance and mask id seen along the ray.
@@ -125,7 +127,10 @@ impl Tracer {
                 let p = origin + hit.t * dir + hit.normal * (1e-9 * (1.0 + hit.t));
                 let facing = hit.normal.dot(self.to_light) > 0.0;
                 let lit = facing && !self.in_shadow(p);
-                (lambert(hit.albedo, hit.normal, self.to_light, lit), hit.owner)
+                (
+                    lambert(hit.albedo, hit.normal, self.to_light, lit),
+                    hit.owner,
+                )
             }
             None if self.sky => (sky(dir), 0),
             None => (DVec3::ZERO, 0),
@@ -222,7 +227,10 @@ mod tests {
         let pixels = view.mask.iter().filter(|&&m| m == 1).count() as f64;
         let fl = 0.5 * 33.0 / 20f64.to_radians().tan();
         let expected = std::f64::consts::PI * (fl * 0.7 / (10.0 - 0.7)).powi(2);
-        assert!((pixels - expected).abs() < 0.2 * expected, "{pixels} vs {expected}");
+        assert!(
+            (pixels - expected).abs() < 0.2 * expected,
+            "{pixels} vs {expected}"
+        );
         assert_eq!(tracer.render_mask(&frame), view.mask);
     }
 
@@ -250,10 +258,11 @@ mod tests {
             .unwrap()
             .render_mask(&frame);
         let centroid = |m: &[u8]| {
-            let (sum, n) = m.iter().enumerate().filter(|(_, &v)| v == 1).fold(
-                (0.0, 0.0),
-                |(s, n), (k, _)| (s + (k % 33) as f64, n + 1.0),
-            );
+            let (sum, n) = m
+                .iter()
+                .enumerate()
+                .filter(|(_, &v)| v == 1)
+                .fold((0.0, 0.0), |(s, n), (k, _)| (s + (k % 33) as f64, n + 1.0));
             sum / n
         };
         // Camera +X is world +X with up = +Y: moving +X moves the mask to larger columns.

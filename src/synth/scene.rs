@@ -121,9 +121,9 @@ impl Object {
                 albedo,
             )],
             "car" => {
-                let car = self
-                    .car
-                    .ok_or_else(|| anyhow::anyhow!("object of shape `car` lacks its `car` dimensions"))?;
+                let car = self.car.ok_or_else(|| {
+                    anyhow::anyhow!("object of shape `car` lacks its `car` dimensions")
+                })?;
                 let body = DVec3::from_array(car.body_half);
                 let cabin = DVec3::from_array(car.cabin_half);
                 let wheel = DVec3::from_array(car.wheel_half);
@@ -257,12 +257,11 @@ mod tests {
     #[test]
     fn clevr_shapes_rest_on_the_ground_with_the_contract_sizes() {
         for shape in ["sphere", "cube", "cylinder"] {
-            for size in 0..2 {
+            for (size, &(_, r)) in CLEVR_SIZES.iter().enumerate() {
                 let o = Object::clevr(shape, 1, size, 1.0, -2.0, 30.0);
                 let parts = o.parts().unwrap();
                 assert_eq!(parts.len(), 1);
                 let solid = parts[0].0;
-                let r = CLEVR_SIZES[size].1;
                 // Lowest point at z = 0: just above is inside, just below is not.
                 let c = o.center();
                 let bottom = DVec3::new(c.x, c.y, 0.0);

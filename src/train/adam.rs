@@ -126,18 +126,41 @@ impl Adam {
         })
     }
 
-    /// The optimizer state as safetensors bytes: `m/<name>`, `v/<name>`, metadata `step`.
-    pub fn state_bytes(&self) -> Result<Vec<u8>> {
-        let mut owned: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
+    /// The optimizer state as named host tensors: `{prefix}m/<name>`, `{prefix}v/<name>`.
+    pub fn state_tensors(&self, prefix: &str) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>> {
+        let mut owned = Vec::new();
         for (i, (name, _)) in self.params.iter().enumerate() {
-            for (prefix, t) in [("m", &self.first_moment[i]), ("v", &self.second_moment[i])] {
+            for (moment, t) in [("m", &self.first_moment[i]), ("v", &self.second_moment[i])] {
                 owned.push((
-                    format!("{prefix}/{name}"),
+                    format!("{prefix}{moment}/{name}"),
                     t.dims().to_vec(),
                     t.flatten_all()?.to_vec1::<f32>()?,
                 ));
             }
         }
+        Ok(owned)
+    }
+
+    /// Restores moments written by [`Adam::state_tensors`] with the same prefix, and the step.
+    pub fn load_state_tensors(&mut self, file: &TensorFile, prefix: &str, step: u64) -> Result<()> {
+        let device = candle_core::Device::Cpu;
+        for (i, (pname, var)) in self.params.iter().enumerate() {
+            let dims: Vec<Option<usize>> = var.dims().iter().map(|&d| Some(d)).collect();
+            for (moment, slot) in [
+                ("m", &mut self.first_moment[i]),
+                ("v", &mut self.second_moment[i]),
+            ] {
+                let (shape, data) = file.f32_tensor(&format!("{prefix}{moment}/{pname}"), &dims)?;
+                *slot = Tensor::from_vec(data, shape, &device)?;
+            }
+        }
+        self.step = step;
+        Ok(())
+    }
+
+    /// The optimizer state alone as safetensors bytes (metadata `format`, `step`).
+    pub fn state_bytes(&self) -> Result<Vec<u8>> {
+        let owned = self.state_tensors("")?;
         let tensors: Vec<F32Tensor> = owned
             .iter()
             .map(|(n, s, d)| F32Tensor {
@@ -162,19 +185,7 @@ impl Adam {
             .require_metadata("step")?
             .parse()
             .map_err(|_| anyhow!("{name}: metadata `step` is not a number"))?;
-        let device = candle_core::Device::Cpu;
-        for (i, (pname, var)) in self.params.iter().enumerate() {
-            let dims: Vec<Option<usize>> = var.dims().iter().map(|&d| Some(d)).collect();
-            for (prefix, slot) in [
-                ("m", &mut self.first_moment[i]),
-                ("v", &mut self.second_moment[i]),
-            ] {
-                let (shape, data) = file.f32_tensor(&format!("{prefix}/{pname}"), &dims)?;
-                *slot = Tensor::from_vec(data, shape, &device)?;
-            }
-        }
-        self.step = step;
-        Ok(())
+        self.load_state_tensors(&file, "", step)
     }
 }
 

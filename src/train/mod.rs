@@ -1,3 +1,5 @@
 //! Training: optimizer with checkpointable state, and (as it lands) the training loop.
 
 pub mod adam;
+pub mod batch;
+pub mod trainer;

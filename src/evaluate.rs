@@ -1,0 +1,190 @@
+//! The uORF evaluation protocol on a dataset: per scene, view 0 is encoded (slots placed with
+//! view 0's camera), every view is rendered; ARI and FG-ARI are taken on view 0, PSNR, SSIM and
+//! NV-ARI (FG-ARI of the novel views) averaged over the other views; then the mean over scenes.
+
+use crate::codes::Codes;
+use crate::dataset::{Dataset, SceneData};
+use crate::encode::{encode_image, EncodeOptions};
+use crate::metrics::{ari, fg_ari, psnr, ssim};
+use crate::model::Colf;
+use crate::render::PreparedScene;
+use crate::render_output::FrameRender;
+use anyhow::{bail, Context, Result};
+use serde::Serialize;
+
+/// Scores of one scene. `None` where a score is undefined (no masks, or no foreground pixel).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SceneScores {
+    pub scene: String,
+    /// Mean PSNR of the novel views (dB).
+    pub psnr: Option<f64>,
+    pub ssim: Option<f64>,
+    /// PSNR of the input view's reconstruction.
+    pub input_psnr: Option<f64>,
+    pub ari: Option<f64>,
+    pub fg_ari: Option<f64>,
+    /// FG-ARI of the novel views, averaged.
+    pub nv_ari: Option<f64>,
+    /// Share of ground-truth object pixels (all views) that foreground slots win.
+    pub fg_share: Option<f64>,
+    /// Foreground slots that win at least one pixel of the input view.
+    pub slots_used: usize,
+}
+
+/// Means over scenes (each mean over the scenes where the score is defined).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct DatasetScores {
+    pub scenes: usize,
+    pub psnr: Option<f64>,
+    pub ssim: Option<f64>,
+    pub input_psnr: Option<f64>,
+    pub ari: Option<f64>,
+    pub fg_ari: Option<f64>,
+    pub nv_ari: Option<f64>,
+    pub fg_share: Option<f64>,
+    pub slots_used: f64,
+}
+
+fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    let v: Vec<f64> = values.flatten().filter(|x| x.is_finite()).collect();
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+impl DatasetScores {
+    /// Averages per-scene scores.
+    pub fn from_scenes(rows: &[SceneScores]) -> DatasetScores {
+        DatasetScores {
+            scenes: rows.len(),
+            psnr: mean(rows.iter().map(|r| r.psnr)),
+            ssim: mean(rows.iter().map(|r| r.ssim)),
+            input_psnr: mean(rows.iter().map(|r| r.input_psnr)),
+            ari: mean(rows.iter().map(|r| r.ari)),
+            fg_ari: mean(rows.iter().map(|r| r.fg_ari)),
+            nv_ari: mean(rows.iter().map(|r| r.nv_ari)),
+            fg_share: mean(rows.iter().map(|r| r.fg_share)),
+            slots_used: if rows.is_empty() {
+                0.0
+            } else {
+                rows.iter().map(|r| r.slots_used as f64).sum::<f64>() / rows.len() as f64
+            },
+        }
+    }
+}
+
+/// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
+pub fn encode_and_render(
+    model: &Colf,
+    scene: &SceneData,
+    num_slots: usize,
+    seed: u64,
+) -> Result<(Codes, Vec<FrameRender>)> {
+    let Some(input) = scene.views.first() else {
+        bail!("scene {} has no views", scene.name);
+    };
+    let codes = encode_image(
+        model,
+        &input.image,
+        &EncodeOptions {
+            num_slots,
+            prune_mass: None,
+            seed,
+            camera_to_world: input.frame.camera_to_world,
+            source: scene.name.clone(),
+        },
+    )?;
+    let prepared = PreparedScene::new(model, &codes, &scene.name)?;
+    let renders = scene
+        .views
+        .iter()
+        .map(|v| prepared.render_frame(model, &v.frame))
+        .collect::<Result<Vec<_>>>()?;
+    Ok((codes, renders))
+}
+
+/// Scores one scene from its renders (one per view, in order).
+pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneScores> {
+    let mut row = SceneScores {
+        scene: scene.name.clone(),
+        ..Default::default()
+    };
+    let (mut psnrs, mut ssims, mut nv_aris) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut fg_won, mut fg_total) = (0usize, 0usize);
+    for (i, (view, render)) in scene.views.iter().zip(renders).enumerate() {
+        let (w, h) = (view.image.w, view.image.h);
+        if (render.width, render.height) != (w, h) {
+            bail!(
+                "{}: view {i} is {w}x{h} but was rendered at {}x{}",
+                scene.name,
+                render.width,
+                render.height
+            );
+        }
+        let p = psnr(&render.rgb, &view.image.data)?;
+        let labels = render.labels();
+        if i == 0 {
+            row.input_psnr = Some(p);
+            row.slots_used = {
+                let mut used: Vec<u32> = labels.iter().copied().filter(|&l| l > 0).collect();
+                used.sort_unstable();
+                used.dedup();
+                used.len()
+            };
+        } else {
+            psnrs.push(p);
+            if w >= 11 && h >= 11 {
+                ssims.push(ssim(
+                    &render.rgb,
+                    &view.image.data,
+                    w as usize,
+                    h as usize,
+                    3,
+                )?);
+            }
+        }
+        if let Some(mask) = &view.mask {
+            let gt: Vec<u32> = mask.iter().map(|&m| m as u32).collect();
+            for (l, g) in labels.iter().zip(&gt) {
+                if *g > 0 {
+                    fg_total += 1;
+                    fg_won += (*l > 0) as usize;
+                }
+            }
+            let fga = fg_ari(&labels, &gt)?;
+            if i == 0 {
+                row.ari = Some(ari(&labels, &gt)?);
+                row.fg_ari = fga;
+            } else if let Some(v) = fga {
+                nv_aris.push(v);
+            }
+        }
+    }
+    let avg = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    row.psnr = avg(&psnrs);
+    row.ssim = avg(&ssims);
+    row.nv_ari = avg(&nv_aris);
+    row.fg_share = (fg_total > 0).then(|| fg_won as f64 / fg_total as f64);
+    Ok(row)
+}
+
+/// Evaluates the first `max_scenes` scenes of `data` (all when `None`); `on_scene` sees each
+/// row as it is done (progress, per-scene output).
+pub fn evaluate(
+    model: &Colf,
+    data: &Dataset,
+    max_scenes: Option<usize>,
+    num_slots: usize,
+    seed: u64,
+    mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
+) -> Result<(DatasetScores, Vec<SceneScores>)> {
+    let n = max_scenes.map_or(data.len(), |m| m.min(data.len()));
+    let mut rows = Vec::with_capacity(n);
+    for i in 0..n {
+        let scene = data.load(i)?;
+        let (_, renders) = encode_and_render(model, &scene, num_slots, seed)
+            .with_context(|| format!("scene {}", scene.name))?;
+        let row = score_scene(&scene, &renders)?;
+        on_scene(i, &row, &renders);
+        rows.push(row);
+    }
+    Ok((DatasetScores::from_scenes(&rows), rows))
+}

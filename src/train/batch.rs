@@ -1,0 +1,103 @@
+//! Training batches: for each scene, one input view to encode and rays sampled from the input
+//! view and novel views to supervise (the authors supervised only the input view by default — a
+//! known trap: a decoder that only ever reconstructs the view it was given need not learn 3D).
+
+use crate::dataset::SceneData;
+use anyhow::{bail, Result};
+use glam::{DMat4, DVec3};
+use rand::rngs::StdRng;
+use rand::Rng;
+
+/// How rays are drawn.
+#[derive(Clone, Copy, Debug)]
+pub struct RaySampling {
+    /// Views supervised per scene: the input view plus `views - 1` others.
+    pub views: usize,
+    /// Rays per supervised view.
+    pub rays_per_view: usize,
+    /// Share of each view's rays drawn from ground-truth object pixels (needs masks; 0 = uniform).
+    pub object_fraction: f64,
+}
+
+/// One scene's part of a batch.
+pub struct SceneSample {
+    /// Input image, sRGB [0, 1], h×w×3.
+    pub input: Vec<f32>,
+    pub input_h: usize,
+    pub input_w: usize,
+    /// Camera-to-world of the input view: the frame of every foreground slot.
+    pub input_camera: DMat4,
+    pub origins: Vec<DVec3>,
+    pub dirs: Vec<DVec3>,
+    /// Target colours, R×3.
+    pub targets: Vec<f32>,
+    /// Ground-truth object id per ray (0 = background; all 0 without masks).
+    pub ids: Vec<u8>,
+    pub has_masks: bool,
+}
+
+/// Draws a sample of `scene` with `rng`.
+pub fn sample_scene(
+    scene: &SceneData,
+    sampling: &RaySampling,
+    rng: &mut StdRng,
+) -> Result<SceneSample> {
+    let n_views = scene.views.len();
+    if n_views == 0 {
+        bail!("scene {} has no views", scene.name);
+    }
+    let input_index = rng.random_range(0..n_views);
+    let input = &scene.views[input_index];
+    // The input view first, then distinct other views (with repeats only if there are too few).
+    let mut others: Vec<usize> = (0..n_views).filter(|&v| v != input_index).collect();
+    let mut views = vec![input_index];
+    while views.len() < sampling.views {
+        if others.is_empty() {
+            others = (0..n_views).collect();
+        }
+        let pick = rng.random_range(0..others.len());
+        views.push(others.swap_remove(pick));
+    }
+    let has_masks = scene.views.iter().all(|v| v.mask.is_some());
+    let total = sampling.views * sampling.rays_per_view;
+    let mut sample = SceneSample {
+        input: input.image.data.clone(),
+        input_h: input.image.h as usize,
+        input_w: input.image.w as usize,
+        input_camera: input.frame.camera_to_world,
+        origins: Vec::with_capacity(total),
+        dirs: Vec::with_capacity(total),
+        targets: Vec::with_capacity(3 * total),
+        ids: Vec::with_capacity(total),
+        has_masks,
+    };
+    for &v in &views {
+        let view = &scene.views[v];
+        let (w, h) = (view.image.w as usize, view.image.h as usize);
+        let object_pixels: Vec<usize> = match (&view.mask, sampling.object_fraction > 0.0) {
+            (Some(mask), true) => (0..w * h).filter(|&p| mask[p] > 0).collect(),
+            _ => Vec::new(),
+        };
+        let n_object = if object_pixels.is_empty() {
+            0
+        } else {
+            (sampling.object_fraction * sampling.rays_per_view as f64).round() as usize
+        };
+        for r in 0..sampling.rays_per_view {
+            let p = if r < n_object {
+                object_pixels[rng.random_range(0..object_pixels.len())]
+            } else {
+                rng.random_range(0..w * h)
+            };
+            let (i, j) = ((p % w) as u32, (p / w) as u32);
+            let ray = view.frame.pixel_ray(i, j);
+            sample.origins.push(ray.origin);
+            sample.dirs.push(ray.direction);
+            sample
+                .targets
+                .extend_from_slice(&view.image.data[3 * p..3 * p + 3]);
+            sample.ids.push(view.mask.as_ref().map_or(0, |m| m[p]));
+        }
+    }
+    Ok(sample)
+}

@@ -1,0 +1,536 @@
+//! The training loop: batches of scenes, one encoded view each, novel and input views
+//! supervised on random rays; Adam; JSON-lines log; atomic, exactly-resumable checkpoints.
+//!
+//! Every step draws its randomness from `StdRng::seed_from_u64(mix(seed, step))`, so a run
+//! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
+
+use super::adam::{Adam, AdamConfig};
+use super::batch::{sample_scene, RaySampling, SceneSample};
+use crate::dataset::{Dataset, SceneData};
+use crate::model::checkpoint::{self, HostParams};
+use crate::model::encoder::image_tensor;
+use crate::model::{Colf, Config, RayBatch, SceneRays};
+use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
+use anyhow::{anyhow, bail, Context, Result};
+use candle_core::{DType, Tensor, D};
+use glam::DMat4;
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// Everything a training run is configured by (stored in its checkpoints).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct TrainOptions {
+    /// Training data (colf or uORF layout).
+    pub data: PathBuf,
+    /// Model file written at every checkpoint and at the end.
+    pub out: PathBuf,
+    /// Start from this model (curriculum); else a fresh `preset` model.
+    pub init: Option<PathBuf>,
+    pub preset: String,
+    /// Total steps (a resumed run continues up to this).
+    pub steps: u64,
+    /// Scenes per batch.
+    pub batch_scenes: usize,
+    pub views_per_scene: usize,
+    pub rays_per_view: usize,
+    /// Foreground slots (default: the model's).
+    pub slots: Option<usize>,
+    pub lr: f64,
+    /// Linear learning-rate warm-up steps.
+    pub warmup: u64,
+    pub l1_weight: f64,
+    /// Weight of the mean squared foreground latent.
+    pub latent_weight: f64,
+    /// Weak supervision from ground-truth masks (Hungarian-matched slots); 0 = unsupervised.
+    pub mask_weight: f64,
+    /// Share of rays drawn from object pixels (uses masks).
+    pub object_fraction: f64,
+    /// Render the background from a zero latent, so it cannot depend on the image (the paper's
+    /// choice for CLEVR).
+    pub zero_background: bool,
+    pub seed: u64,
+    pub checkpoint_every: u64,
+    /// Evaluate on `eval_data` every this many steps (0: never).
+    pub eval_every: u64,
+    pub eval_data: Option<PathBuf>,
+    pub eval_scenes: usize,
+    /// Abort after this many non-finite steps.
+    pub max_bad_steps: u64,
+    /// Use only the first N training scenes (overfitting tests).
+    pub max_scenes: Option<usize>,
+}
+
+impl TrainOptions {
+    /// Checkpoint path: `<out>.ckpt`.
+    pub fn checkpoint_path(&self) -> PathBuf {
+        let mut p = self.out.clone().into_os_string();
+        p.push(".ckpt");
+        PathBuf::from(p)
+    }
+
+    /// JSON-lines log path: `<out>.log.jsonl`.
+    pub fn log_path(&self) -> PathBuf {
+        let mut p = self.out.clone().into_os_string();
+        p.push(".log.jsonl");
+        PathBuf::from(p)
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.batch_scenes == 0 || self.views_per_scene == 0 || self.rays_per_view == 0 {
+            bail!("batch size, views per scene and rays per view must be positive");
+        }
+        if !(self.lr > 0.0 && self.lr.is_finite()) {
+            bail!("learning rate must be positive");
+        }
+        for (name, v) in [
+            ("l1 weight", self.l1_weight),
+            ("latent weight", self.latent_weight),
+            ("mask weight", self.mask_weight),
+        ] {
+            if !(v >= 0.0 && v.is_finite()) {
+                bail!("{name} must be a non-negative number");
+            }
+        }
+        if !(0.0..=1.0).contains(&self.object_fraction) {
+            bail!("object fraction must be in [0, 1]");
+        }
+        Ok(())
+    }
+}
+
+/// One line of the training log.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct StepLog {
+    pub step: u64,
+    pub loss: f64,
+    pub mse: f64,
+    /// PSNR of the sampled rays (dB).
+    pub psnr: f64,
+    /// PSNR of the sampled rays that hit a ground-truth object.
+    pub obj_psnr: Option<f64>,
+    /// Mean foreground weight on object rays: how much of the objects the slots won.
+    pub fg_share: Option<f64>,
+    /// ARI between argmax slots and object ids on object rays, averaged over scenes.
+    pub fg_ari: Option<f64>,
+    /// Foreground slots that win at least one sampled ray, averaged over scenes.
+    pub slots_used: f64,
+    pub mask_loss: Option<f64>,
+    pub lr: f64,
+    pub grad_norm: f64,
+    pub rays_per_s: f64,
+    pub seconds: f64,
+    pub skipped: bool,
+}
+
+/// The state of a run.
+pub struct Trainer {
+    pub opts: TrainOptions,
+    colf: Colf,
+    adam: Adam,
+    data: Vec<SceneData>,
+    eval_data: Option<Dataset>,
+    pub step: u64,
+    pub bad_steps: u64,
+    num_slots: usize,
+}
+
+const CHECKPOINT_FORMAT: &str = "colf-train-checkpoint/1";
+
+fn step_rng(seed: u64, step: u64) -> StdRng {
+    // splitmix-style mixing so neighbouring steps get unrelated streams.
+    let mut z = seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    StdRng::seed_from_u64(z ^ (z >> 31))
+}
+
+fn load_scenes(path: &Path, max: Option<usize>) -> Result<Vec<SceneData>> {
+    let data = Dataset::open(path)?;
+    if data.is_empty() {
+        bail!("{}: no scenes found", path.display());
+    }
+    let n = max.map_or(data.len(), |m| m.min(data.len()));
+    (0..n).map(|i| data.load(i)).collect()
+}
+
+impl Trainer {
+    /// A new run, or (`resume`) the run saved in `opts.checkpoint_path()`.
+    pub fn new(opts: TrainOptions, resume: bool) -> Result<Trainer> {
+        opts.validate()?;
+        let (colf, adam_state, step, bad_steps) = if resume {
+            let path = opts.checkpoint_path();
+            let bytes = std::fs::read(&path).with_context(|| {
+                format!("{}: cannot read the checkpoint to resume", path.display())
+            })?;
+            let (colf, step, bad) = load_checkpoint(&bytes, &path.display().to_string())?;
+            (colf, Some(bytes), step, bad)
+        } else {
+            let colf = match &opts.init {
+                Some(p) => Colf::load(p)?,
+                None => Colf::init(&Config::preset(&opts.preset)?, opts.seed)?,
+            };
+            (colf, None, 0, 0)
+        };
+        let colf = colf.into_trainable()?;
+        let mut adam = Adam::new(colf.named_vars(), AdamConfig::default())?;
+        if let Some(bytes) = adam_state {
+            let file = TensorFile::parse(&bytes, "checkpoint")?;
+            adam.load_state_tensors(&file, "adam/", step)?;
+        }
+        let num_slots = opts.slots.unwrap_or(colf.config().default_slots);
+        let data = load_scenes(&opts.data, opts.max_scenes)?;
+        let eval_data = match &opts.eval_data {
+            Some(p) if opts.eval_every > 0 => Some(Dataset::open(p)?),
+            _ => None,
+        };
+        Ok(Trainer {
+            opts,
+            colf,
+            adam,
+            data,
+            eval_data,
+            step,
+            bad_steps,
+            num_slots,
+        })
+    }
+
+    pub fn model(&self) -> &Colf {
+        &self.colf
+    }
+
+    pub fn num_scenes(&self) -> usize {
+        self.data.len()
+    }
+
+    fn learning_rate(&self) -> f64 {
+        let warm = self.opts.warmup.max(1) as f64;
+        self.opts.lr * ((self.step + 1) as f64 / warm).min(1.0)
+    }
+
+    /// One optimisation step (a non-finite loss skips the update and is counted).
+    pub fn train_step(&mut self) -> Result<StepLog> {
+        let started = Instant::now();
+        let opts = &self.opts;
+        let mut rng = step_rng(opts.seed, self.step);
+        let sampling = RaySampling {
+            views: opts.views_per_scene,
+            rays_per_view: opts.rays_per_view,
+            object_fraction: opts.object_fraction,
+        };
+        let samples: Vec<SceneSample> = (0..opts.batch_scenes)
+            .map(|_| {
+                let i = rng.random_range(0..self.data.len());
+                sample_scene(&self.data[i], &sampling, &mut rng)
+            })
+            .collect::<Result<_>>()?;
+        let model = self.colf.model();
+        let cfg = self.colf.config();
+        let dev = self.colf.device().clone();
+        let (b, k) = (samples.len(), self.num_slots);
+        let r = samples[0].origins.len();
+
+        let images = samples
+            .iter()
+            .map(|s| image_tensor(cfg, &s.input, s.input_h, s.input_w, &dev))
+            .collect::<candle_core::Result<Vec<_>>>()?;
+        let encoded = model.encode(&Tensor::cat(&images, 0)?, k, &mut rng)?;
+        let bg = if opts.zero_background {
+            encoded.bg.zeros_like()?
+        } else {
+            encoded.bg.clone()
+        };
+        let fields = model.prepare(&encoded.fg, &bg)?;
+        let frames: Vec<Vec<DMat4>> = samples.iter().map(|s| vec![s.input_camera; k]).collect();
+        let scene_rays: Vec<SceneRays> = samples
+            .iter()
+            .zip(&frames)
+            .map(|(s, f)| SceneRays {
+                slot_to_world: f,
+                origins: &s.origins,
+                dirs: &s.dirs,
+            })
+            .collect();
+        let rays = RayBatch::new(cfg, &scene_rays, &dev)?;
+        let decoded = model.decode(&fields, &rays)?;
+        let targets: Vec<f32> = samples
+            .iter()
+            .flat_map(|s| s.targets.iter().copied())
+            .collect();
+        let target = Tensor::from_vec(targets.clone(), (b, r, 3), &dev)?;
+        let diff = (&decoded.rgb - &target)?;
+        let mse = diff.sqr()?.mean_all()?;
+        let mut loss = mse.clone();
+        if opts.l1_weight > 0.0 {
+            loss = (loss + (diff.abs()?.mean_all()? * opts.l1_weight)?)?;
+        }
+        if opts.latent_weight > 0.0 && k > 0 {
+            loss = (loss + (encoded.fg.sqr()?.mean_all()? * opts.latent_weight)?)?;
+        }
+        let weights_host = decoded.weights.flatten_all()?.to_vec1::<f32>()?;
+        let s = 1 + k;
+        let mut mask_loss_value = None;
+        if opts.mask_weight > 0.0 && samples.iter().all(|s| s.has_masks) {
+            let (index, valid) = matched_targets(&samples, &weights_host, s);
+            let index = Tensor::from_vec(index, (b, r, 1), &dev)?;
+            let valid = Tensor::from_vec(valid, (b, r), &dev)?;
+            let picked = decoded
+                .weights
+                .gather(&index, D::Minus1)?
+                .squeeze(D::Minus1)?;
+            let log_w = (picked + 1e-6)?.log()?;
+            let count = valid.sum_all()?.to_scalar::<f32>()?.max(1.0);
+            let ce = ((log_w * &valid)?.sum_all()? * (-1.0 / count as f64))?;
+            mask_loss_value = Some(ce.to_scalar::<f32>()? as f64);
+            loss = (loss + (ce * opts.mask_weight)?)?;
+        }
+        let loss_value = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        let mse_value = mse.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        let lr = self.learning_rate();
+        let mut log = StepLog {
+            step: self.step,
+            loss: loss_value,
+            mse: mse_value,
+            psnr: -10.0 * mse_value.max(1e-12).log10(),
+            lr,
+            mask_loss: mask_loss_value,
+            ..Default::default()
+        };
+        let rgb_host = decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
+        ray_metrics(&mut log, &samples, &rgb_host, &targets, &weights_host, s);
+        let update = if loss_value.is_finite() {
+            let grads = loss.backward()?;
+            match self.adam.step(&grads, lr) {
+                Ok(stats) => Some(stats),
+                Err(_) => None, // non-finite gradients: skip like a non-finite loss
+            }
+        } else {
+            None
+        };
+        match update {
+            Some(stats) => log.grad_norm = stats.grad_norm,
+            None => {
+                self.bad_steps += 1;
+                log.skipped = true;
+                if self.bad_steps > self.opts.max_bad_steps {
+                    bail!(
+                        "{} steps had a non-finite loss or gradient (limit {}); lower the learning rate (--lr) or check the data",
+                        self.bad_steps,
+                        self.opts.max_bad_steps
+                    );
+                }
+            }
+        }
+        self.step += 1;
+        log.seconds = started.elapsed().as_secs_f64();
+        log.rays_per_s = (b * r) as f64 / log.seconds;
+        Ok(log)
+    }
+
+    /// Saves the model file and the checkpoint (both atomically; the checkpoint holds the model,
+    /// the optimizer moments and the step, in one file, so they can never disagree).
+    pub fn save(&self) -> Result<()> {
+        let host = checkpoint::to_host(self.colf.parameters())?;
+        let (model_bytes, _) = checkpoint::to_bytes(self.colf.config(), &host);
+        crate::io::write_atomic(&self.opts.out, &model_bytes)?;
+        let adam = self.adam.state_tensors("adam/")?;
+        let mut tensors: Vec<F32Tensor> = host
+            .iter()
+            .map(|(name, (shape, data))| F32Tensor {
+                name: name.as_str(),
+                shape: shape.clone(),
+                data,
+            })
+            .collect();
+        let prefixed: Vec<String> = host.keys().map(|n| format!("model/{n}")).collect();
+        for (t, name) in tensors.iter_mut().zip(&prefixed) {
+            t.name = name.as_str();
+        }
+        tensors.extend(adam.iter().map(|(n, s, d)| F32Tensor {
+            name: n,
+            shape: s.clone(),
+            data: d,
+        }));
+        let mut meta = BTreeMap::new();
+        meta.insert("format".into(), CHECKPOINT_FORMAT.to_string());
+        meta.insert("config".into(), self.colf.config().to_json());
+        meta.insert("step".into(), self.step.to_string());
+        meta.insert("bad_steps".into(), self.bad_steps.to_string());
+        meta.insert("options".into(), serde_json::to_string(&self.opts)?);
+        crate::io::write_atomic(
+            &self.opts.checkpoint_path(),
+            &serialize_f32(&tensors, &meta),
+        )
+    }
+
+    /// Evaluates on the evaluation set (if any) with the current weights.
+    pub fn evaluate(&self) -> Result<Option<crate::evaluate::DatasetScores>> {
+        let Some(data) = &self.eval_data else {
+            return Ok(None);
+        };
+        let (scores, _) = crate::evaluate::evaluate(
+            &self.colf,
+            data,
+            Some(self.opts.eval_scenes),
+            self.num_slots,
+            0,
+            |_, _, _| {},
+        )?;
+        Ok(Some(scores))
+    }
+
+    /// Trains until `opts.steps` or until `stop` is set; checkpoints every
+    /// `checkpoint_every` steps and at the end; `on_log` sees every step (and evaluations).
+    pub fn run(
+        &mut self,
+        stop: &AtomicBool,
+        mut on_log: impl FnMut(&serde_json::Value),
+    ) -> Result<()> {
+        while self.step < self.opts.steps && !stop.load(Ordering::Relaxed) {
+            let log = self.train_step()?;
+            on_log(&serde_json::to_value(&log)?);
+            let every = |n: u64| n > 0 && self.step % n == 0;
+            if every(self.opts.eval_every) {
+                if let Some(scores) = self.evaluate()? {
+                    on_log(&serde_json::json!({"step": self.step, "eval": scores}));
+                }
+            }
+            if every(self.opts.checkpoint_every) {
+                self.save()?;
+            }
+        }
+        self.save()
+    }
+}
+
+/// Reads a training checkpoint: the model, the step and the count of bad steps.
+fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
+    let file = TensorFile::parse(bytes, name)?;
+    if file.require_metadata("format")? != CHECKPOINT_FORMAT {
+        bail!("{name}: not a colf training checkpoint");
+    }
+    let config = Config::from_json(file.require_metadata("config")?)
+        .with_context(|| format!("{name}: config"))?;
+    let number = |key: &str| -> Result<u64> {
+        file.require_metadata(key)?
+            .parse()
+            .map_err(|_| anyhow!("{name}: metadata `{key}` is not a number"))
+    };
+    let (step, bad) = (number("step")?, number("bad_steps")?);
+    let mut host: HostParams = BTreeMap::new();
+    for tensor in file.tensors.names() {
+        if let Some(param) = tensor.strip_prefix("model/") {
+            let shape = file.tensors.tensor(tensor)?.shape().to_vec();
+            let expected: Vec<Option<usize>> = shape.iter().map(|&d| Some(d)).collect();
+            host.insert(param.to_string(), file.f32_tensor(tensor, &expected)?);
+        }
+    }
+    let (model_bytes, _) = checkpoint::to_bytes(&config, &host);
+    let colf = Colf::from_bytes(&model_bytes, name)?;
+    Ok((colf, step, bad))
+}
+
+/// Mask supervision targets: per scene, objects are matched to foreground slots by the
+/// Hungarian method on the summed compositor weights (the matching the model is closest to),
+/// background rays target the background. Returns per ray the target field index and a 0/1
+/// validity (objects left unmatched when there are more objects than slots are ignored).
+fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) {
+    use pathfinding::prelude::{kuhn_munkres, Matrix};
+    let r = samples[0].ids.len();
+    let mut index = vec![0u32; samples.len() * r];
+    let mut valid = vec![1f32; samples.len() * r];
+    for (bi, sample) in samples.iter().enumerate() {
+        let mut objects: Vec<u8> = sample.ids.iter().copied().filter(|&id| id > 0).collect();
+        objects.sort_unstable();
+        objects.dedup();
+        let k = s - 1;
+        let rows = objects.len().min(k);
+        let mut assignment = BTreeMap::new();
+        if rows > 0 {
+            // Keep the objects with the most rays when there are more objects than slots.
+            objects.sort_by_key(|&o| {
+                std::cmp::Reverse(sample.ids.iter().filter(|&&i| i == o).count())
+            });
+            objects.truncate(rows);
+            let mut overlap = vec![0i64; rows * k];
+            for (ri, &id) in sample.ids.iter().enumerate() {
+                if let Some(row) = objects.iter().position(|&o| o == id) {
+                    let w = &weights[(bi * r + ri) * s..(bi * r + ri + 1) * s];
+                    for slot in 0..k {
+                        overlap[row * k + slot] += (w[1 + slot] * 1e4) as i64;
+                    }
+                }
+            }
+            let matrix = Matrix::from_vec(rows, k, overlap).expect("rows × k");
+            let (_, cols) = kuhn_munkres(&matrix);
+            for (row, col) in cols.into_iter().enumerate() {
+                assignment.insert(objects[row], col as u32 + 1);
+            }
+        }
+        for (ri, &id) in sample.ids.iter().enumerate() {
+            let at = bi * r + ri;
+            if id == 0 {
+                index[at] = 0;
+            } else if let Some(&field) = assignment.get(&id) {
+                index[at] = field;
+            } else {
+                valid[at] = 0.0;
+            }
+        }
+    }
+    (index, valid)
+}
+
+/// Fills the object-aware metrics of `log` from the sampled rays.
+fn ray_metrics(
+    log: &mut StepLog,
+    samples: &[SceneSample],
+    rgb: &[f32],
+    targets: &[f32],
+    weights: &[f32],
+    s: usize,
+) {
+    let r = samples[0].ids.len();
+    let (mut obj_sq, mut obj_n, mut fg_sum) = (0.0f64, 0usize, 0.0f64);
+    let (mut aris, mut used) = (Vec::new(), 0usize);
+    for (bi, sample) in samples.iter().enumerate() {
+        let mut pred = Vec::new();
+        let mut gt = Vec::new();
+        let mut won = vec![false; s];
+        for (ri, &id) in sample.ids.iter().enumerate() {
+            let at = bi * r + ri;
+            let w = &weights[at * s..(at + 1) * s];
+            let label = (0..s).fold(0, |best, i| if w[i] > w[best] { i } else { best });
+            won[label] = true;
+            if id > 0 {
+                for c in 0..3 {
+                    let e = (rgb[3 * at + c] - targets[3 * at + c]) as f64;
+                    obj_sq += e * e;
+                }
+                obj_n += 3;
+                fg_sum += 1.0 - w[0] as f64;
+                pred.push(label as u32);
+                gt.push(id as u32);
+            }
+        }
+        used += won[1..].iter().filter(|&&x| x).count();
+        if !gt.is_empty() {
+            if let Ok(a) = crate::metrics::ari(&pred, &gt) {
+                aris.push(a);
+            }
+        }
+    }
+    if obj_n > 0 {
+        log.obj_psnr = Some(-10.0 * (obj_sq / obj_n as f64).max(1e-12).log10());
+        log.fg_share = Some(fg_sum / (obj_n / 3) as f64);
+    }
+    if !aris.is_empty() {
+        log.fg_ari = Some(aris.iter().sum::<f64>() / aris.len() as f64);
+    }
+    log.slots_used = used as f64 / samples.len() as f64;
+}
