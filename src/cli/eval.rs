@@ -1,9 +1,8 @@
 //! `colf-eval`: metrics of a rendered image or mask against its ground truth, as JSON.
 //!
-//! The dataset mode of DESIGN.md (`colf-eval --data DIR [--model M] [--scenes N]`) is meant to
-//! be added to [`EvalArgs`] as top-level options next to an optional subcommand: make
-//! `command` an `Option<EvalCommand>`, add the `--data`/`--model`/`--scenes` fields, and set
-//! `args_conflicts_with_subcommands = true` so `images` and `masks` keep their exact syntax.
+//! The dataset mode (`colf-eval --data DIR [--model M] [--scenes N]`) is a set of top-level
+//! options beside the optional subcommand (`args_conflicts_with_subcommands`), so `images` and
+//! `masks` keep their exact syntax.
 
 use crate::image_io::{read_labels, read_rgb};
 use crate::io::{display_name, write_output};
@@ -30,16 +29,57 @@ ARI is scikit-learn's adjusted_rand_score of the two label maps; FG-ARI is the s
 pixels whose ground-truth label is not 0 (background), and null when the ground truth has no \
 such pixel. Grey masks give the grey value as the label; colour masks give one label per \
 distinct colour, black being 0.\n\n\
-Either file may be `-` (stdin), not both. Images of different sizes are an error.",
+Either file may be `-` (stdin), not both. Images of different sizes are an error.\n\n\
+With --data DIR (a colf-synth or uORF-layout dataset), the uORF protocol: per scene, view 0 is \
+encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-ARI are taken \
+on view 0; PSNR, SSIM and NV-ARI (FG-ARI of the novel views) are averaged over the other views; \
+then each score is averaged over the scenes where it is defined. Also reported: input_psnr \
+(view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
+slots) and slots_used (foreground slots that win a pixel of view 0). The JSON object goes to \
+stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
+masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
 colf-eval masks renders/frame_0000.mask.png data/scene_00000/view_001.mask.png\n  \
-colf-eval images a.png b.png | jq .psnr",
-    subcommand_required = true,
+colf-eval images a.png b.png | jq .psnr\n  \
+colf-eval --data data/test --scenes 100 > metrics.json",
+    args_conflicts_with_subcommands = true,
     arg_required_else_help = true
 )]
 pub struct EvalArgs {
     #[command(subcommand)]
-    pub command: EvalCommand,
+    pub command: Option<EvalCommand>,
+
+    /// Evaluate a model on a dataset (uORF protocol) instead of comparing two files.
+    #[arg(long, value_name = "DIR")]
+    pub data: Option<std::path::PathBuf>,
+
+    /// Model file (default: $COLF_MODEL, else the bundled default model).
+    #[arg(long, value_name = "M", requires = "data")]
+    pub model: Option<String>,
+
+    /// Evaluate only the first N scenes.
+    #[arg(long, value_name = "N", requires = "data")]
+    pub scenes: Option<usize>,
+
+    /// Foreground slots to encode with (default: the model's).
+    #[arg(long, value_name = "K", requires = "data")]
+    pub slots: Option<usize>,
+
+    /// Seed of the slot noise.
+    #[arg(long, default_value_t = 0, value_name = "S", requires = "data")]
+    pub seed: u64,
+
+    /// Add the per-scene rows to the JSON.
+    #[arg(long, requires = "data")]
+    pub per_scene: bool,
+
+    /// Write every scene's renders (SCENE_vN.png, SCENE_vN.mask.png) into this folder.
+    #[arg(long, value_name = "DIR", requires = "data")]
+    pub renders: Option<std::path::PathBuf>,
+
+    /// No progress lines on stderr.
+    #[arg(short, long, requires = "data")]
+    pub quiet: bool,
 }
 
 #[derive(Subcommand, Debug)]
@@ -108,9 +148,77 @@ pub fn eval_masks(pred: &str, gt: &str) -> Result<MaskScores> {
 
 /// Runs `colf-eval`.
 pub fn run(args: &EvalArgs) -> Result<()> {
-    let json = match &args.command {
-        EvalCommand::Images { pred, gt } => serde_json::to_string(&eval_images(pred, gt)?)?,
-        EvalCommand::Masks { pred, gt } => serde_json::to_string(&eval_masks(pred, gt)?)?,
+    let json = match (&args.command, &args.data) {
+        (Some(EvalCommand::Images { pred, gt }), _) => {
+            serde_json::to_string(&eval_images(pred, gt)?)?
+        }
+        (Some(EvalCommand::Masks { pred, gt }), _) => {
+            serde_json::to_string(&eval_masks(pred, gt)?)?
+        }
+        (None, Some(data)) => eval_dataset(args, data)?,
+        (None, None) => bail!("give `images`, `masks` or --data DIR (see --help)"),
     };
     write_output("-", (json + "\n").as_bytes(), false)
+}
+
+/// `colf-eval --data DIR`: the uORF protocol over a dataset; returns the JSON text.
+fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
+    use crate::io::write_atomic;
+    let dataset = crate::dataset::Dataset::open(data)?;
+    if dataset.is_empty() {
+        bail!("{}: no scenes found", data.display());
+    }
+    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let slots = args.slots.unwrap_or(model.config().default_slots);
+    if let Some(dir) = &args.renders {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("{}: cannot create the folder", dir.display()))?;
+    }
+    let total = args.scenes.map_or(dataset.len(), |n| n.min(dataset.len()));
+    let started = std::time::Instant::now();
+    let mut render_error = None;
+    let (scores, rows) = crate::evaluate::evaluate(
+        &model,
+        &dataset,
+        args.scenes,
+        slots,
+        args.seed,
+        |i, row, renders| {
+            if let Some(dir) = &args.renders {
+                for (v, frame) in renders.iter().enumerate() {
+                    let base = dir.join(format!("{}_v{v}", row.scene));
+                    let png =
+                        crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
+                    let result = write_atomic(&base.with_extension("png"), &png).and_then(|_| {
+                        write_atomic(&base.with_extension("mask.png"), &frame.mask_png()?)
+                    });
+                    if let Err(e) = result {
+                        render_error.get_or_insert(e);
+                    }
+                }
+            }
+            if !args.quiet {
+                let show = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
+                eprintln!(
+                    "colf-eval: {}/{total} {} psnr {} fg-ari {} ({:.1} s)",
+                    i + 1,
+                    row.scene,
+                    show(row.psnr),
+                    show(row.fg_ari),
+                    started.elapsed().as_secs_f64()
+                );
+            }
+        },
+    )?;
+    if let Some(e) = render_error {
+        return Err(e);
+    }
+    let mut doc = serde_json::to_value(&scores)?;
+    doc["data"] = serde_json::json!(data.display().to_string());
+    doc["model"] = serde_json::json!(model.identity()?);
+    doc["slots"] = serde_json::json!(slots);
+    if args.per_scene {
+        doc["per_scene"] = serde_json::to_value(&rows)?;
+    }
+    Ok(serde_json::to_string(&doc)?)
 }
