@@ -2,6 +2,7 @@
 # Everything builds in release mode: candle in debug is ~200x slower, and one profile keeps one
 # build cache.
 
+SHELL := /bin/bash
 PREFIX ?= /usr/local
 CARGO ?= cargo
 RELEASE := target/release
@@ -32,19 +33,28 @@ man:
 	done
 	@echo "man pages: $(words $(wildcard man/*.1)) rendered without warnings"
 
-# synthesise a scene, encode one view, move one object and delete another, render an orbit
-# with masks, and draw a contact sheet.
+# Synthesise a held-out scene, encode its first view, move one object and delete another,
+# render an orbit of novel views with masks before and after the edit, and draw a contact sheet:
+#   row 1: the input view, then novel views of the encoded scene
+#   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
+#   row 3: the same novel views after the edit;  row 4: their masks
 demo: build
 	@mkdir -p $(DEMO)
-	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test
+	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q
 	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
-	  --camera $(DEMO)/data/scene_00000/transforms.json -o $(DEMO)/scene.codes
+	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.02 -o $(DEMO)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json
 	$(RELEASE)/colf-edit examples/demo-edits.json $(DEMO)/scene.codes -o $(DEMO)/edited.codes
-	$(RELEASE)/colf-cameras orbit --frames 8 --size 64 -o $(DEMO)/orbit.json
-	$(RELEASE)/colf-render $(DEMO)/scene.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/orbit --masks
-	$(RELEASE)/colf-render $(DEMO)/edited.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/edited --masks
-	@echo "demo: renders in $(DEMO)/orbit and $(DEMO)/edited"
+	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO)/orbit.json
+	$(RELEASE)/colf-render $(DEMO)/scene.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/orbit --masks -q
+	$(RELEASE)/colf-render $(DEMO)/edited.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/edited --masks -q
+	$(RELEASE)/colf-sheet --cols 5 -o $(DEMO)/sheet.png \
+	  $(DEMO)/data/scene_00000/view_000.png $(DEMO)/orbit/frame_000{0,1,2,3}.png \
+	  $(DEMO)/data/scene_00000/view_000.mask.png $(DEMO)/orbit/frame_000{0,1,2,3}.mask.png \
+	  - $(DEMO)/edited/frame_000{0,1,2,3}.png \
+	  - $(DEMO)/edited/frame_000{0,1,2,3}.mask.png
+	@echo "demo: slots in $(DEMO)/slots.json, renders in $(DEMO)/orbit and $(DEMO)/edited,"
+	@echo "      contact sheet $(DEMO)/sheet.png"
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1

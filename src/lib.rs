@@ -29,6 +29,7 @@ pub mod metrics;
 pub mod model;
 pub mod render;
 pub mod render_output;
+pub mod sheet;
 pub mod synth;
 pub mod tensorfile;
 pub mod train;

@@ -224,3 +224,57 @@ fn train_step_small() {
         );
     }
 }
+
+/// Where the decoder's backward time goes (4 scenes, K = 7, 1024 rays each).
+#[test]
+#[ignore]
+fn profile_decoder_backward() {
+    use candle_core::{Device, Tensor};
+    use colf::model::{RayBatch, SceneRays};
+    let cfg = Config::small();
+    let colf = Colf::init(&cfg, 0).unwrap().into_trainable().unwrap();
+    let dev = Device::Cpu;
+    let model = colf.model();
+    let fg = Tensor::ones((4, 7, cfg.slot_dim), candle_core::DType::F32, &dev).unwrap();
+    let bg = Tensor::ones((4, cfg.slot_dim), candle_core::DType::F32, &dev).unwrap();
+    let (o, d) = frame_rays(32);
+    let frames = vec![DMat4::IDENTITY; 7];
+    let scenes: Vec<SceneRays> = (0..4)
+        .map(|_| SceneRays {
+            slot_to_world: &frames,
+            origins: &o,
+            dirs: &d,
+        })
+        .collect();
+    let rays = RayBatch::new(&cfg, &scenes, &dev).unwrap();
+    for _ in 0..2 {
+        let t = Instant::now();
+        let fields = model.prepare(&fg, &bg).unwrap();
+        let feat = fields.forward(&rays.coords).unwrap();
+        feat.sqr().unwrap().mean_all().unwrap().backward().unwrap();
+        let t_lfn = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let fields = model.prepare(&fg, &bg).unwrap();
+        let feat = fields.forward(&rays.coords).unwrap();
+        let (c, ord) = model.heads.forward(&feat).unwrap();
+        (c.sum_all().unwrap() + ord.sum_all().unwrap())
+            .unwrap()
+            .backward()
+            .unwrap();
+        let t_heads = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let fields = model.prepare(&fg, &bg).unwrap();
+        let out = model.decode(&fields, &rays).unwrap();
+        out.rgb
+            .sqr()
+            .unwrap()
+            .mean_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        let t_all = t.elapsed().as_secs_f64();
+        println!(
+            "fwd+bwd: hypernet+lfn {t_lfn:.3} s, +heads {t_heads:.3} s, full decode {t_all:.3} s"
+        );
+    }
+}

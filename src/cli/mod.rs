@@ -7,6 +7,7 @@ pub mod edit;
 pub mod encode;
 pub mod eval;
 pub mod render;
+pub mod sheet;
 pub mod synth;
 pub mod train;
 
@@ -35,5 +36,6 @@ pub fn commands() -> Vec<clap::Command> {
         eval::EvalArgs::command(),
         synth::SynthArgs::command(),
         train::TrainArgs::command(),
+        sheet::SheetArgs::command(),
     ]
 }

@@ -154,7 +154,11 @@ impl Config {
             bail!("model config: `encoder_first_stride` must be 1 or 2");
         }
         let grid = self.encoder_size / self.encoder_first_stride;
-        if !self.encoder_size.is_multiple_of(4 * self.encoder_first_stride) || grid < 4 {
+        if !self
+            .encoder_size
+            .is_multiple_of(4 * self.encoder_first_stride)
+            || grid < 4
+        {
             bail!(
                 "model config: `encoder_size` {} must be a multiple of {} (two stride-2 layers)",
                 self.encoder_size,

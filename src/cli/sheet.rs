@@ -1,0 +1,54 @@
+//! `colf-sheet`: tile PNGs into a contact sheet.
+
+use crate::sheet::{load_tile, tile};
+use anyhow::Result;
+use clap::Parser;
+
+/// Tile PNGs into one contact-sheet PNG.
+#[derive(Parser, Debug)]
+#[command(
+    name = "colf-sheet",
+    version,
+    about = "Tile PNG images (and label masks, in colour) into one contact sheet",
+    long_about = "Tile PNG images row-major into a grid of --cols columns, white gaps between \
+cells, and write one PNG. Files whose name ends in .mask.png are label masks (0 = background, \
+k = object or slot k): they are shown with one distinct colour per label (background black) \
+instead of as near-black grey. The word `-` in the list leaves a cell empty, so rows can be \
+aligned. Tiles of different sizes sit at the top left of cells of the largest size.",
+    after_help = "Example:\n  colf-sheet --cols 5 input.png orbit/frame_000{0,1,2,3}.png - orbit/frame_000{0,1,2,3}.mask.png -o sheet.png"
+)]
+pub struct SheetArgs {
+    /// PNG files (`-`: an empty cell).
+    #[arg(value_name = "PNG", required = true)]
+    pub images: Vec<String>,
+
+    /// Number of columns.
+    #[arg(long, default_value_t = 4, value_name = "N")]
+    pub cols: usize,
+
+    /// Gap between cells, in pixels.
+    #[arg(long, default_value_t = 4, value_name = "PX")]
+    pub gap: u32,
+
+    /// Output PNG (`-`: stdout, refused on a terminal).
+    #[arg(short, long, value_name = "OUT")]
+    pub output: String,
+}
+
+/// Runs `colf-sheet`.
+pub fn run(args: &SheetArgs) -> Result<()> {
+    let tiles = args
+        .images
+        .iter()
+        .map(|path| {
+            if path == "-" {
+                return Ok(None);
+            }
+            let bytes = crate::io::read_input(path, true)?;
+            load_tile(&bytes, path, path.ends_with(".mask.png")).map(Some)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let sheet = tile(&tiles, args.cols, args.gap)?;
+    let png = crate::image_io::encode_png_rgb(sheet.w, sheet.h, &sheet.data);
+    crate::io::write_output(&args.output, &png, true)
+}

@@ -1,0 +1,108 @@
+//! Contact sheets: PNGs tiled in a grid, label masks shown in colour, so a run's inputs, novel
+//! views, masks and edits can be seen side by side in one picture.
+
+use crate::image_io::{decode_labels, decode_rgb, RgbImage32};
+use anyhow::{bail, Result};
+
+/// A distinct colour per label (label 0, the background, is black). The first colours are
+/// well separated; beyond them hues follow the golden angle.
+pub fn label_color(label: u32) -> [f32; 3] {
+    const FIXED: [[f32; 3]; 10] = [
+        [0.0, 0.0, 0.0],
+        [0.90, 0.10, 0.29],
+        [0.24, 0.71, 0.29],
+        [1.00, 0.88, 0.10],
+        [0.00, 0.51, 0.78],
+        [0.96, 0.51, 0.19],
+        [0.57, 0.12, 0.71],
+        [0.27, 0.94, 0.94],
+        [0.94, 0.20, 0.90],
+        [0.82, 0.96, 0.24],
+    ];
+    if let Some(c) = FIXED.get(label as usize) {
+        return *c;
+    }
+    let hue = (label as f32 * 137.508).rem_euclid(360.0) / 60.0;
+    let x = 1.0 - (hue % 2.0 - 1.0).abs();
+    match hue as u32 {
+        0 => [1.0, x, 0.0],
+        1 => [x, 1.0, 0.0],
+        2 => [0.0, 1.0, x],
+        3 => [0.0, x, 1.0],
+        4 => [x, 0.0, 1.0],
+        _ => [1.0, 0.0, x],
+    }
+}
+
+/// A tile: an RGB image, from a PNG, or a label mask shown in colour.
+pub fn load_tile(bytes: &[u8], name: &str, as_labels: bool) -> Result<RgbImage32> {
+    if !as_labels {
+        return decode_rgb(bytes, name);
+    }
+    let (w, h, labels) = decode_labels(bytes, name)?;
+    Ok(RgbImage32 {
+        w,
+        h,
+        data: labels.iter().flat_map(|&l| label_color(l)).collect(),
+    })
+}
+
+/// Tiles `tiles` row-major into `cols` columns with `gap` pixels of white between them; tiles of
+/// different sizes are placed top-left in cells of the largest size. `None` leaves a cell empty.
+pub fn tile(tiles: &[Option<RgbImage32>], cols: usize, gap: u32) -> Result<RgbImage32> {
+    if cols == 0 || tiles.is_empty() {
+        bail!("a contact sheet needs at least one tile and one column");
+    }
+    let cell_w = tiles.iter().flatten().map(|t| t.w).max().unwrap_or(1);
+    let cell_h = tiles.iter().flatten().map(|t| t.h).max().unwrap_or(1);
+    let rows = tiles.len().div_ceil(cols);
+    let w = cols as u32 * cell_w + (cols as u32 + 1) * gap;
+    let h = rows as u32 * cell_h + (rows as u32 + 1) * gap;
+    if w as u64 * h as u64 > 1 << 28 {
+        bail!("the contact sheet would be {w}x{h} pixels: too large");
+    }
+    let mut data = vec![1.0f32; 3 * (w * h) as usize];
+    for (i, t) in tiles.iter().enumerate() {
+        let Some(t) = t else { continue };
+        let x0 = gap + (i % cols) as u32 * (cell_w + gap);
+        let y0 = gap + (i / cols) as u32 * (cell_h + gap);
+        for y in 0..t.h {
+            let src = &t.data[(3 * y * t.w) as usize..(3 * (y + 1) * t.w) as usize];
+            let at = (3 * ((y0 + y) * w + x0)) as usize;
+            data[at..at + src.len()].copy_from_slice(src);
+        }
+    }
+    Ok(RgbImage32 { w, h, data })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiles_land_in_their_cells() {
+        let red = RgbImage32 {
+            w: 2,
+            h: 1,
+            data: vec![1.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+        };
+        let sheet = tile(&[Some(red.clone()), None, Some(red)], 2, 1).unwrap();
+        assert_eq!((sheet.w, sheet.h), (7, 5));
+        let px = |x: u32, y: u32| &sheet.data[(3 * (y * sheet.w + x)) as usize..][..3];
+        assert_eq!(px(1, 1), &[1.0, 0.0, 0.0]); // first tile
+        assert_eq!(px(4, 1), &[1.0, 1.0, 1.0]); // empty cell
+        assert_eq!(px(1, 3), &[1.0, 0.0, 0.0]); // third tile, second row
+        assert_eq!(px(0, 0), &[1.0, 1.0, 1.0]); // gap
+    }
+
+    #[test]
+    fn label_colours_are_distinct() {
+        let colours: Vec<[f32; 3]> = (0..40).map(label_color).collect();
+        for i in 0..colours.len() {
+            for j in 0..i {
+                assert_ne!(colours[i], colours[j], "labels {i} and {j}");
+            }
+        }
+        assert_eq!(label_color(0), [0.0; 3]);
+    }
+}
