@@ -1,0 +1,274 @@
+//! CLI tests of colf-encode, colf-render and colf-cameras on the bundled default model: pipes,
+//! files, determinism, contracts of the outputs, and failure paths.
+
+use assert_cmd::Command;
+use colf::codes::Codes;
+use std::path::{Path, PathBuf};
+
+fn bin(name: &str) -> Command {
+    Command::cargo_bin(name).unwrap()
+}
+
+/// A one-scene synthetic dataset (64², 4 views) in `dir`; returns the scene folder.
+fn scene(dir: &Path) -> PathBuf {
+    bin("colf-synth")
+        .args(["--scenes", "1", "--seed", "5", "-q", "--out"])
+        .arg(dir.join("data"))
+        .assert()
+        .success();
+    dir.join("data/scene_00000")
+}
+
+fn encode(scene: &Path, out: &Path) {
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .arg("-o")
+        .arg(out)
+        .assert()
+        .success();
+}
+
+fn one_line_error(out: &std::process::Output, stage: &str, needle: &str) {
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(err.starts_with(&format!("colf-{stage}: error: ")), "{err}");
+    assert!(err.contains(needle), "`{err}` lacks `{needle}`");
+}
+
+#[test]
+fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let (a, b) = (dir.path().join("a.codes"), dir.path().join("b.codes"));
+    encode(&scene, &a);
+    encode(&scene, &b);
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    let codes = Codes::read(a.to_str().unwrap()).unwrap();
+    assert_eq!(codes.slots.len(), 7, "the small model's default K");
+    // Every slot sits in the input camera's frame.
+    let cams =
+        colf::camera::Cameras::read(scene.join("transforms.json").to_str().unwrap()).unwrap();
+    for s in &codes.slots {
+        assert!(
+            (s.slot_to_world - cams.frames[0].camera_to_world).abs_diff_eq(glam::DMat4::ZERO, 1e-6)
+        );
+        assert!((0.0..=1.0).contains(&s.mass));
+        assert!(s.source.starts_with("view_000.png#"));
+    }
+    for out in ["r1", "r2"] {
+        bin("colf-render")
+            .arg(&a)
+            .arg("--cameras")
+            .arg(scene.join("transforms.json"))
+            .arg("--out")
+            .arg(dir.path().join(out))
+            .args(["--masks", "--exr", "-q"])
+            .assert()
+            .success();
+    }
+    for v in 0..4 {
+        for ext in ["png", "mask.png", "exr"] {
+            let name = format!("view_{v:03}.{ext}");
+            let one = std::fs::read(dir.path().join("r1").join(&name)).unwrap();
+            assert_eq!(
+                one,
+                std::fs::read(dir.path().join("r2").join(&name)).unwrap(),
+                "{name}"
+            );
+        }
+        let (w, h, labels) = colf::image_io::read_labels(
+            dir.path()
+                .join(format!("r1/view_{v:03}.mask.png"))
+                .to_str()
+                .unwrap(),
+        )
+        .unwrap();
+        assert_eq!((w, h), (64, 64));
+        assert!(labels.iter().all(|&l| l <= 7), "mask labels beyond K");
+    }
+    let exr = dir.path().join("r1/view_000.exr");
+    let channels = colf::render_output::read_exr_channels(&exr).unwrap();
+    assert!(channels["R"].iter().all(|v| v.is_finite()));
+    assert!(channels.contains_key("slot6.order") && !channels.contains_key("slot7.order"));
+    let python = std::process::Command::new("python3")
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/python/exr_check.py"
+        ))
+        .arg(&exr)
+        .args(["7", "64", "64"])
+        .output()
+        .expect("python3");
+    assert!(
+        python.status.success(),
+        "OpenEXR check failed (pip install OpenEXR numpy): {}",
+        String::from_utf8_lossy(&python.stderr)
+    );
+}
+
+#[test]
+fn encode_edit_render_in_a_pipe_and_orbit_from_cameras() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let edits = dir.path().join("e.json");
+    std::fs::write(
+        &edits,
+        r#"[{"op":"translate","slots":[0],"by":[0,1,0]},{"op":"delete","slots":[1]}]"#,
+    )
+    .unwrap();
+    let encoded = bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .args(["--slots", "3", "-o", "-"])
+        .output()
+        .unwrap();
+    assert!(encoded.status.success());
+    let edited = bin("colf-edit")
+        .arg(&edits)
+        .write_stdin(encoded.stdout)
+        .output()
+        .unwrap();
+    assert!(edited.status.success(), "{edited:?}");
+    let codes = dir.path().join("edited.codes");
+    std::fs::write(&codes, &edited.stdout).unwrap();
+    let out = dir.path().join("piped");
+    bin("colf-render")
+        .args(["-", "--cameras"])
+        .arg(scene.join("transforms.json"))
+        .arg("--out")
+        .arg(&out)
+        .args(["--frames", "1..3", "--masks", "-q"])
+        .write_stdin(edited.stdout)
+        .assert()
+        .success();
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "view_001.mask.png",
+            "view_001.png",
+            "view_002.mask.png",
+            "view_002.png"
+        ]
+    );
+    // colf-cameras orbit | colf-render --cameras -
+    let orbit = bin("colf-cameras")
+        .args(["orbit", "--frames", "3", "--size", "32"])
+        .output()
+        .unwrap();
+    assert!(orbit.status.success());
+    let orbit_out = dir.path().join("orbit");
+    bin("colf-render")
+        .arg(&codes)
+        .args(["--cameras", "-", "--out"])
+        .arg(&orbit_out)
+        .arg("-q")
+        .write_stdin(orbit.stdout)
+        .assert()
+        .success();
+    for f in 0..3 {
+        let img = colf::image_io::read_rgb(
+            orbit_out
+                .join(format!("frame_{f:04}.png"))
+                .to_str()
+                .unwrap(),
+        )
+        .unwrap();
+        assert_eq!((img.w, img.h), (32, 32));
+    }
+}
+
+#[test]
+fn codes_of_another_model_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let codes = dir.path().join("a.codes");
+    encode(&scene, &codes);
+    let other = dir.path().join("other.safetensors");
+    bin("colf-train")
+        .args(["init", "--preset", "small", "--seed", "99", "-o"])
+        .arg(&other)
+        .assert()
+        .success();
+    let out = bin("colf-render")
+        .arg(&codes)
+        .arg("--cameras")
+        .arg(scene.join("transforms.json"))
+        .arg("--out")
+        .arg(dir.path().join("r"))
+        .arg("--model")
+        .arg(&other)
+        .output()
+        .unwrap();
+    one_line_error(&out, "render", "encoded by model");
+    assert!(!dir.path().join("r/view_000.png").exists());
+}
+
+#[test]
+fn bad_inputs_leave_no_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let bad_png = dir.path().join("bad.png");
+    std::fs::write(&bad_png, b"\x89PNG\r\n\x1a\nnot really").unwrap();
+    let codes_out = dir.path().join("x.codes");
+    let out = bin("colf-encode")
+        .arg(&bad_png)
+        .arg("-o")
+        .arg(&codes_out)
+        .output()
+        .unwrap();
+    one_line_error(&out, "encode", "bad.png");
+    assert!(!codes_out.exists());
+
+    let out = bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .args(["--frame", "9", "-o"])
+        .arg(&codes_out)
+        .output()
+        .unwrap();
+    one_line_error(&out, "encode", "--frame 9 does not exist");
+
+    let out = bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .args(["--model", "/no/such/model.safetensors", "-o"])
+        .arg(&codes_out)
+        .output()
+        .unwrap();
+    one_line_error(&out, "encode", "/no/such/model.safetensors");
+    assert!(!codes_out.exists());
+
+    let codes = dir.path().join("a.codes");
+    encode(&scene, &codes);
+    let cams = dir.path().join("cams.json");
+    std::fs::write(&cams, r#"{"w":64,"h":64,"fl_x":0,"frames":[{"transform_matrix":[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#).unwrap();
+    let out = bin("colf-render")
+        .arg(&codes)
+        .arg("--cameras")
+        .arg(&cams)
+        .arg("--out")
+        .arg(dir.path().join("r"))
+        .output()
+        .unwrap();
+    one_line_error(&out, "render", "focal length");
+    assert!(!dir.path().join("r").exists());
+
+    let out = bin("colf-render")
+        .arg(&codes)
+        .arg("--cameras")
+        .arg(scene.join("transforms.json"))
+        .args(["--frames", "7..9", "--out"])
+        .arg(dir.path().join("r"))
+        .output()
+        .unwrap();
+    one_line_error(&out, "render", "selects no frames");
+    let out = bin("colf-render").args(["--out", "x"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+}
