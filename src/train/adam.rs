@@ -10,6 +10,9 @@ use candle_core::backprop::GradStore;
 use candle_core::{Tensor, Var};
 use std::collections::BTreeMap;
 
+/// A named host tensor: (name, shape, values).
+pub type NamedHostTensor = (String, Vec<usize>, Vec<f32>);
+
 /// Adam hyper-parameters.
 #[derive(Clone, Copy, Debug)]
 pub struct AdamConfig {
@@ -127,7 +130,7 @@ impl Adam {
     }
 
     /// The optimizer state as named host tensors: `{prefix}m/<name>`, `{prefix}v/<name>`.
-    pub fn state_tensors(&self, prefix: &str) -> Result<Vec<(String, Vec<usize>, Vec<f32>)>> {
+    pub fn state_tensors(&self, prefix: &str) -> Result<Vec<NamedHostTensor>> {
         let mut owned = Vec::new();
         for (i, (name, _)) in self.params.iter().enumerate() {
             for (moment, t) in [("m", &self.first_moment[i]), ("v", &self.second_moment[i])] {

@@ -305,10 +305,8 @@ impl Trainer {
         ray_metrics(&mut log, &samples, &rgb_host, &targets, &weights_host, s);
         let update = if loss_value.is_finite() {
             let grads = loss.backward()?;
-            match self.adam.step(&grads, lr) {
-                Ok(stats) => Some(stats),
-                Err(_) => None, // non-finite gradients: skip like a non-finite loss
-            }
+            // Non-finite gradients: skipped like a non-finite loss.
+            self.adam.step(&grads, lr).ok()
         } else {
             None
         };
@@ -394,7 +392,7 @@ impl Trainer {
         while self.step < self.opts.steps && !stop.load(Ordering::Relaxed) {
             let log = self.train_step()?;
             on_log(&serde_json::to_value(&log)?);
-            let every = |n: u64| n > 0 && self.step % n == 0;
+            let every = |n: u64| n > 0 && self.step.is_multiple_of(n);
             if every(self.opts.eval_every) {
                 if let Some(scores) = self.evaluate()? {
                     on_log(&serde_json::json!({"step": self.step, "eval": scores}));
