@@ -41,6 +41,9 @@ pub struct Compositor {
 pub struct Composite {
     /// Softmax weights over the slots (background first).
     pub weights: Tensor,
+    /// Their logarithms, from a log-softmax (finite gradients even where a weight underflows:
+    /// training losses on weights must use these, not `weights.log()`).
+    pub log_weights: Tensor,
     /// World-comparable ordering values minus the per-ray base shift (world units).
     pub ordering: Tensor,
 }
@@ -73,6 +76,7 @@ impl Compositor {
         let scores = (learned - prior)?;
         Ok(Composite {
             weights: candle_nn::ops::softmax(&scores, D::Minus1)?,
+            log_weights: candle_nn::ops::log_softmax(&scores, D::Minus1)?,
             ordering: world,
         })
     }

@@ -54,6 +54,8 @@ pub struct Decoded {
     pub rgb: Tensor,
     /// Compositor weights [B, R, S], S = 1 + K, index 0 = background.
     pub weights: Tensor,
+    /// log of `weights`, by log-softmax (use for losses on the weights) [B, R, S].
+    pub log_weights: Tensor,
     /// Each field's colour [B, R, S, 3].
     pub colors: Tensor,
     /// World-comparable ordering values minus the per-ray `RayBatch::base` [B, R, S].
@@ -123,6 +125,7 @@ impl ColfModel {
         Ok(Decoded {
             rgb,
             weights: comp.weights,
+            log_weights: comp.log_weights,
             colors,
             ordering: comp.ordering,
         })

@@ -279,11 +279,10 @@ impl Trainer {
             let (index, valid) = matched_targets(&samples, &weights_host, s);
             let index = Tensor::from_vec(index, (b, r, 1), &dev)?;
             let valid = Tensor::from_vec(valid, (b, r), &dev)?;
-            let picked = decoded
-                .weights
+            let log_w = decoded
+                .log_weights
                 .gather(&index, D::Minus1)?
                 .squeeze(D::Minus1)?;
-            let log_w = (picked + 1e-6)?.log()?;
             let count = valid.sum_all()?.to_scalar::<f32>()?.max(1.0);
             let ce = ((log_w * &valid)?.sum_all()? * (-1.0 / count as f64))?;
             mask_loss_value = Some(ce.to_scalar::<f32>()? as f64);
