@@ -9,6 +9,9 @@ fn main() {
             eprintln!("colf-train: {summary}");
             Ok(())
         }
+        Some(TrainCommand::Plot(plot)) => {
+            colf::train::plot::plot_file(&plot.log, &plot.output, plot.width, plot.height)
+        }
         None => run_training(&args.run),
     })
 }

@@ -152,6 +152,35 @@ pub struct RunArgs {
 pub enum TrainCommand {
     /// Write a freshly initialised model.
     Init(InitArgs),
+    /// Draw loss and PSNR curves from a training log (OUT.log.jsonl) as a PNG.
+    Plot(PlotArgs),
+}
+
+/// `colf-train plot`.
+#[derive(Args, Debug)]
+#[command(
+    about = "Draw training curves from a JSON-lines training log",
+    long_about = "Draw the curves of a training log (OUT.log.jsonl, as colf-train writes it) \
+into a PNG: loss (log scale); PSNR of the sampled rays and of the rays on objects; the share of \
+object rays won by foreground slots and FG-ARI; and, when the log has evaluations, held-out \
+novel-view PSNR and FG-ARI. Per-step values are drawn faint with a moving average on top."
+)]
+pub struct PlotArgs {
+    /// The JSON-lines log (`-`: stdin).
+    #[arg(value_name = "LOG")]
+    pub log: String,
+
+    /// Output PNG (`-`: stdout, refused on a terminal).
+    #[arg(short, long, value_name = "PNG")]
+    pub output: String,
+
+    /// Width in pixels.
+    #[arg(long, default_value_t = 1000, value_name = "W")]
+    pub width: u32,
+
+    /// Height in pixels.
+    #[arg(long, default_value_t = 700, value_name = "H")]
+    pub height: u32,
 }
 
 /// `colf-train init`.

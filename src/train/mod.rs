@@ -3,3 +3,4 @@
 pub mod adam;
 pub mod batch;
 pub mod trainer;
+pub mod plot;
