@@ -58,8 +58,10 @@ impl Compositor {
                 1,
                 vb.pp("v"),
             )?,
-            // Initial slope 10 per scene_scale of depth gap.
-            gap_log_slope: vb.get_with_hints(1, "gap_log_slope", Init::Const(10f64.ln()))?,
+            // Initial slope 1 per scene_scale of depth gap: soft enough that every slot gets
+            // gradient at the start of training (a slope of 10 made the weights one-hot), still
+            // strictly front-to-back; training steepens it as the orderings become reliable.
+            gap_log_slope: vb.get_with_hints(1, "gap_log_slope", Init::Const(0.0))?,
             scene_scale: cfg.scene_scale,
         })
     }

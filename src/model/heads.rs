@@ -19,7 +19,10 @@ impl Heads {
         let (f, h, n) = (cfg.lfn_features, cfg.head_hidden, cfg.head_hidden_layers);
         Ok(Heads {
             color: Mlp::new(f, h, n, 3, vb.pp("color"))?,
-            ordering: Mlp::new(f, h, n, 1, vb.pp("ordering"))?,
+            // Ordering values start near zero (std 1e-3 of the output layer): with the
+            // compositor's depth prior, untrained heads with O(10) orderings made the weights
+            // one-hot from the first step, and slots behind never received gradient.
+            ordering: Mlp::with_small_output(f, h, n, 1, 1e-3, vb.pp("ordering"))?,
         })
     }
 

@@ -59,6 +59,37 @@ impl Mlp {
         Self::build(input, hidden, hidden_layers, output, false, vb)
     }
 
+    /// As `new`, with the output layer's weights drawn with standard deviation `output_std`
+    /// (biases zero): for outputs that must start near zero, such as ordering values, so an
+    /// untrained compositor blends slots softly and every slot receives gradient.
+    pub fn with_small_output(
+        input: usize,
+        hidden: usize,
+        hidden_layers: usize,
+        output: usize,
+        output_std: f64,
+        vb: VarBuilder,
+    ) -> Result<Mlp> {
+        let mut layers = Vec::with_capacity(hidden_layers + 1);
+        let mut width = input;
+        for i in 0..hidden_layers {
+            layers.push(linear(width, hidden, vb.pp(format!("layers.{i}")))?);
+            width = hidden;
+        }
+        let vb_out = vb.pp(format!("layers.{hidden_layers}"));
+        let weight = vb_out.get_with_hints(
+            (output, width),
+            "weight",
+            candle_nn::Init::Randn {
+                mean: 0.0,
+                stdev: output_std,
+            },
+        )?;
+        let bias = vb_out.get_with_hints(output, "bias", candle_nn::Init::Const(0.0))?;
+        layers.push(Linear::new(weight, Some(bias)));
+        Ok(Mlp { layers })
+    }
+
     fn build(
         input: usize,
         hidden: usize,
