@@ -9,7 +9,7 @@ RELEASE := target/release
 BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 DEMO := out/demo
 
-.PHONY: all build test lint man demo install uninstall clean
+.PHONY: all build test lint man demo bench install uninstall clean
 
 all: build
 
@@ -19,6 +19,11 @@ build:
 # The test command of the README and of .ci/run.
 test:
 	$(CARGO) test --release
+
+# Speed and memory on this machine: a table on stdout, target/bench/bench.json.
+bench: build
+	$(CARGO) build --release --example bench
+	$(RELEASE)/examples/bench --out target/bench/bench.json
 
 lint:
 	$(CARGO) fmt --check

@@ -1,0 +1,320 @@
+//! `make bench`: speed and memory of colf on this machine, as a table on stdout and one JSON
+//! object per measurement in `target/bench/bench.json`.
+//!
+//! Each measurement runs in a fresh child process (this program with `--one SPEC`), so its peak
+//! resident memory (VmHWM) is its own. Timings are medians of repeated runs after a warm-up.
+//! FLOPs are counted analytically from the model config (2 per multiply-add of every matmul on
+//! the per-ray path: light field, heads, compositor), so achieved GFLOP/s and the ratio to the
+//! measured matmul peak say how efficiently the hardware is used.
+
+use anyhow::{bail, Context, Result};
+use colf::model::{Colf, Config};
+use glam::{DMat4, DVec3};
+use serde_json::{json, Value};
+use std::time::Instant;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    v[v.len() / 2]
+}
+
+/// Peak resident memory of this process so far, MiB.
+fn peak_rss_mib() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find(|l| l.starts_with("VmHWM:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|kb| kb.parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// Multiply-adds ×2 of one ray through one field: light field, colour and ordering heads,
+/// compositor MLP.
+fn lightfield_flops_per_ray_field(cfg: &Config) -> f64 {
+    let mlp = |dims: &[usize]| dims.windows(2).map(|w| 2 * w[0] * w[1]).sum::<usize>();
+    let lfn = mlp(&cfg.lfn_dims());
+    let head = |out: usize| {
+        let mut d = vec![cfg.lfn_features];
+        d.extend(std::iter::repeat_n(cfg.head_hidden, cfg.head_hidden_layers));
+        d.push(out);
+        mlp(&d)
+    };
+    let mut comp = vec![2];
+    comp.extend(std::iter::repeat_n(
+        cfg.compositor_hidden,
+        cfg.compositor_hidden_layers,
+    ));
+    comp.push(1);
+    (lfn + head(3) + head(1) + mlp(&comp)) as f64
+}
+
+/// The rays of a 128² clevr567-like camera (distance 12.4, elevation 40°).
+fn frame_rays(size: usize) -> (Vec<DVec3>, Vec<DVec3>) {
+    let frame = colf::camera::Frame {
+        file_path: None,
+        intrinsics: colf::camera::Intrinsics::from_fov(size as u32, size as u32, 49.13),
+        camera_to_world: colf::camera::look_at(
+            colf::camera_path::spherical_position(DVec3::ZERO, 12.4, 30.0, 40.0),
+            DVec3::ZERO,
+            DVec3::Z,
+        )
+        .unwrap(),
+    };
+    frame.rays().iter().map(|r| (r.origin, r.direction)).unzip()
+}
+
+/// Deterministic pseudo-random values in [-1, 1].
+fn noise(n: usize, seed: u64) -> Vec<f32> {
+    let mut x = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
+    (0..n)
+        .map(|_| {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            ((x >> 40) as f32 / (1u64 << 24) as f32) * 2.0 - 1.0
+        })
+        .collect()
+}
+
+fn measure_matmul() -> Result<Value> {
+    use candle_core::{Device, Tensor};
+    let dev = Device::Cpu;
+    let mut best = 0.0f64;
+    for (m, k, n) in [(4096, 256, 256), (1024, 1024, 1024)] {
+        let a = Tensor::from_vec(noise(m * k, 1), (m, k), &dev)?;
+        let b = Tensor::from_vec(noise(k * n, 2), (k, n), &dev)?;
+        let _ = a.matmul(&b)?;
+        for _ in 0..20 {
+            let t = Instant::now();
+            let c = a.matmul(&b)?;
+            let s = t.elapsed().as_secs_f64();
+            drop(c);
+            best = best.max(2.0 * (m * k * n) as f64 / s / 1e9);
+        }
+    }
+    Ok(
+        json!({"what": "matmul peak (best of [4096,256]x[256,256] and 1024^3, f32)", "gflops": best}),
+    )
+}
+
+fn measure_render(preset: &str, slots: usize, size: usize, reps: usize) -> Result<Value> {
+    let cfg = Config::preset(preset)?;
+    let model = Colf::init(&cfg, 0)?;
+    let d = cfg.slot_dim;
+    let latents: Vec<Vec<f32>> = (0..slots).map(|k| noise(d, 10 + k as u64)).collect();
+    let frames: Vec<DMat4> = (0..slots)
+        .map(|k| {
+            let a = k as f64 * 2.399;
+            DMat4::from_translation(DVec3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.0))
+        })
+        .collect();
+    let (origins, dirs) = frame_rays(size);
+    let t = Instant::now();
+    let prepared = model.prepare(&latents, &noise(d, 3))?;
+    let prepare_ms = t.elapsed().as_secs_f64() * 1e3;
+    let _ = model.render_rays(&prepared, &frames, &origins, &dirs)?; // warm-up
+    let times: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            model
+                .render_rays(&prepared, &frames, &origins, &dirs)
+                .map(|_| t.elapsed().as_secs_f64())
+        })
+        .collect::<Result<_>>()?;
+    let s = median(times);
+    let flops = lightfield_flops_per_ray_field(&cfg) * (size * size * (slots + 1)) as f64;
+    Ok(json!({
+        "what": "render one frame", "preset": preset, "slots": slots, "resolution": size,
+        "ms": s * 1e3, "fps": 1.0 / s, "gflop_per_frame": flops / 1e9, "gflops": flops / s / 1e9,
+        "prepare_ms": prepare_ms, "peak_mib": peak_rss_mib(),
+    }))
+}
+
+fn measure_encode(preset: &str, reps: usize) -> Result<Value> {
+    let cfg = Config::preset(preset)?;
+    let model = Colf::init(&cfg, 0)?;
+    let image: Vec<f32> = noise(128 * 128 * 3, 5)
+        .iter()
+        .map(|v| 0.5 + 0.5 * v)
+        .collect();
+    let _ = model.encode(&image, 128, 128, 7, 0)?;
+    let times: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            model
+                .encode(&image, 128, 128, 7, 0)
+                .map(|_| t.elapsed().as_secs_f64())
+        })
+        .collect::<Result<_>>()?;
+    Ok(
+        json!({"what": "encode one 128x128 image", "preset": preset, "slots": 7,
+              "ms": median(times) * 1e3, "peak_mib": peak_rss_mib()}),
+    )
+}
+
+fn measure_train(steps: u64) -> Result<Value> {
+    use colf::train::trainer::{TrainOptions, Trainer};
+    let dir = tempfile::tempdir()?;
+    let exe = std::env::current_exe()?;
+    let synth = exe
+        .parent()
+        .and_then(|p| p.parent())
+        .map(|p| p.join("colf-synth"))
+        .context("colf-synth")?;
+    let status = std::process::Command::new(&synth)
+        .args(["--scenes", "16", "--seed", "1", "-q", "--out"])
+        .arg(dir.path().join("data"))
+        .status()
+        .with_context(|| format!("running {}", synth.display()))?;
+    if !status.success() {
+        bail!("colf-synth failed");
+    }
+    let opts = TrainOptions {
+        data: dir.path().join("data"),
+        out: dir.path().join("m.safetensors"),
+        init: None,
+        preset: "small".into(),
+        steps,
+        batch_scenes: 4,
+        views_per_scene: 2,
+        rays_per_view: 512,
+        slots: None,
+        lr: 1e-4,
+        warmup: 10,
+        l1_weight: 0.0,
+        latent_weight: 1e-4,
+        mask_weight: 0.0,
+        object_fraction: 0.0,
+        zero_background: false,
+        seed: 0,
+        checkpoint_every: 0,
+        eval_every: 0,
+        eval_data: None,
+        eval_scenes: 0,
+        max_bad_steps: 10,
+        max_scenes: None,
+    };
+    let mut trainer = Trainer::new(opts, false)?;
+    let _ = trainer.train_step()?; // warm-up
+    let times: Vec<f64> = (0..steps)
+        .map(|_| trainer.train_step().map(|l| l.seconds))
+        .collect::<Result<_>>()?;
+    let s = median(times);
+    Ok(
+        json!({"what": "training step (small; 4 scenes x 2 views x 512 rays, K=7)", "preset": "small",
+              "slots": 7, "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "rays_per_s": 4096.0 / s,
+              "peak_mib": peak_rss_mib()}),
+    )
+}
+
+fn run_one(spec: &Value) -> Result<Value> {
+    let quick = spec["quick"].as_bool().unwrap_or(false);
+    let reps = if quick { 2 } else { 5 };
+    match spec["kind"].as_str() {
+        Some("matmul") => measure_matmul(),
+        Some("render") => measure_render(
+            spec["preset"].as_str().unwrap_or("small"),
+            spec["slots"].as_u64().unwrap_or(7) as usize,
+            spec["size"].as_u64().unwrap_or(128) as usize,
+            reps,
+        ),
+        Some("encode") => measure_encode(spec["preset"].as_str().unwrap_or("small"), reps),
+        Some("train") => measure_train(if quick { 3 } else { 10 }),
+        other => bail!("unknown measurement {other:?}"),
+    }
+}
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    if args.len() == 3 && args[1] == "--one" {
+        let spec: Value = serde_json::from_str(&args[2])?;
+        println!("{}", run_one(&spec)?);
+        return Ok(());
+    }
+    let quick = args.iter().any(|a| a == "--quick");
+    let out = args
+        .iter()
+        .position(|a| a == "--out")
+        .and_then(|i| args.get(i + 1).cloned())
+        .unwrap_or_else(|| "target/bench/bench.json".into());
+    let mut specs = vec![json!({"kind": "matmul"})];
+    for preset in ["small", "paper"] {
+        for slots in [2, 7, 60] {
+            specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
+        }
+        specs.push(json!({"kind": "encode", "preset": preset}));
+    }
+    specs.push(json!({"kind": "train"}));
+    let exe = std::env::current_exe()?;
+    let mut results = Vec::new();
+    let mut peak = f64::NAN;
+    for mut spec in specs {
+        spec["quick"] = json!(quick);
+        eprintln!("bench: {spec}");
+        let child = std::process::Command::new(&exe)
+            .arg("--one")
+            .arg(spec.to_string())
+            .output()?;
+        if !child.status.success() {
+            bail!(
+                "measurement {spec} failed: {}",
+                String::from_utf8_lossy(&child.stderr)
+            );
+        }
+        let mut row: Value = serde_json::from_slice(&child.stdout)?;
+        if let Some(g) = row["gflops"].as_f64() {
+            if row["what"]
+                .as_str()
+                .is_some_and(|w| w.starts_with("matmul"))
+            {
+                peak = g;
+            } else if peak.is_finite() {
+                row["ratio_to_peak"] = json!(g / peak);
+            }
+        }
+        results.push(row);
+    }
+    println!("| what | preset | slots | res | ms | FPS | GFLOP/s | of peak | peak MiB |");
+    println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    let cell = |v: &Value, digits: usize| {
+        v.as_f64()
+            .map_or("".to_string(), |x| format!("{x:.digits$}"))
+    };
+    for r in &results {
+        println!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            r["what"].as_str().unwrap_or(""),
+            r["preset"].as_str().unwrap_or(""),
+            r["slots"].as_u64().map_or(String::new(), |v| v.to_string()),
+            r["resolution"]
+                .as_u64()
+                .map_or(String::new(), |v| format!("{v}²")),
+            cell(&r["ms"], 1),
+            cell(&r["fps"], 2),
+            cell(&r["gflops"], 1),
+            r["ratio_to_peak"]
+                .as_f64()
+                .map_or(String::new(), |x| format!("{:.0} %", 100.0 * x)),
+            cell(&r["peak_mib"], 0),
+        );
+    }
+    if let Some(train) = results.iter().find(|r| r["steps_per_hour"].is_number()) {
+        println!(
+            "\ntraining: {:.0} steps/hour, {:.0} rays/s",
+            train["steps_per_hour"].as_f64().unwrap_or(0.0),
+            train["rays_per_s"].as_f64().unwrap_or(0.0)
+        );
+    }
+    if let Some(dir) = std::path::Path::new(&out).parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    colf::io::write_atomic(
+        std::path::Path::new(&out),
+        serde_json::to_string_pretty(&results)?.as_bytes(),
+    )?;
+    eprintln!("bench: wrote {out}");
+    Ok(())
+}
