@@ -31,6 +31,8 @@ fn tiny() -> Config {
         compositor_hidden: 8,
         compositor_hidden_layers: 1,
         scene_scale: 4.0,
+        zero_background: false,
+        hypernet_rms_norm: true,
     }
 }
 

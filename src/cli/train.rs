@@ -110,7 +110,8 @@ pub struct RunArgs {
     pub object_fraction: f64,
 
     /// Render the background from a zero latent, so it cannot depend on the image (the paper's
-    /// choice for CLEVR).
+    /// choice for CLEVR). A fresh model's setting, stored in its config (so encode and render
+    /// do the same); with --init or --resume the model's own setting holds.
     #[arg(long)]
     pub zero_background: bool,
 

@@ -51,6 +51,18 @@ pub struct Config {
     /// World length that maps to 1 in the networks' inputs: Plücker moments are divided by it
     /// (then smoothly bounded), ordering values are produced in these units.
     pub scene_scale: f64,
+    /// The background is rendered from a zero latent, whatever the image (the paper's choice
+    /// for CLEVR): the background cannot explain image-specific content, which is left to the
+    /// foreground slots. Applied inside the model, so training and inference agree. Absent in
+    /// older files (= false), and not written when false, so their identity is unchanged.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub zero_background: bool,
+    /// Divide each slot latent by its root-mean-square before the hypernetworks, so the scale
+    /// of the generated light-field weights does not follow the scale of the latent (slot
+    /// latents reach norms of ~20 and vary between scenes; without this, training was spiky).
+    /// Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub hypernet_rms_norm: bool,
 }
 
 impl Config {
@@ -77,6 +89,8 @@ impl Config {
             compositor_hidden: 32,
             compositor_hidden_layers: 1,
             scene_scale: 8.0,
+            zero_background: false,
+            hypernet_rms_norm: true,
         }
     }
 
@@ -105,6 +119,8 @@ impl Config {
             compositor_hidden: 128,
             compositor_hidden_layers: 3,
             scene_scale: 8.0,
+            zero_background: false,
+            hypernet_rms_norm: true,
         }
     }
 

@@ -39,6 +39,8 @@ struct LayerHeads {
 pub struct HyperNet {
     fc1: Linear,
     layers: Vec<LayerHeads>,
+    /// See `Config::hypernet_rms_norm`.
+    rms_norm: bool,
 }
 
 fn head(inp: usize, out: usize, a: f64, c: f64, vb: VarBuilder) -> Result<Linear> {
@@ -77,13 +79,23 @@ impl HyperNet {
                 fan_out,
             });
         }
-        Ok(HyperNet { fc1, layers })
+        Ok(HyperNet {
+            fc1,
+            layers,
+            rms_norm: cfg.hypernet_rms_norm,
+        })
     }
 
     /// latents [S, D] → the S light fields' layers.
     pub fn forward(&self, latents: &Tensor) -> Result<Vec<GeneratedLayer>> {
         let s = latents.dim(0)?;
-        let hidden = self.fc1.forward(latents)?.relu()?;
+        let latents = if self.rms_norm {
+            let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
+            latents.broadcast_div(&rms)?
+        } else {
+            latents.clone()
+        };
+        let hidden = self.fc1.forward(&latents)?.relu()?;
         self.layers
             .iter()
             .map(|l| {

@@ -84,7 +84,11 @@ impl ColfModel {
         rng: &mut StdRng,
     ) -> candle_core::Result<SlotOutput> {
         let tokens = self.encoder.forward(images)?;
-        self.slot_attention.forward(&tokens, k, rng)
+        let mut out = self.slot_attention.forward(&tokens, k, rng)?;
+        if self.cfg.zero_background {
+            out.bg = out.bg.zeros_like()?;
+        }
+        Ok(out)
     }
 
     /// Runs the hypernetworks once: fg [B, K, D], bg [B, D] → the B·(1 + K) light fields,

@@ -50,8 +50,8 @@ pub struct TrainOptions {
     pub mask_weight: f64,
     /// Share of rays drawn from object pixels (uses masks).
     pub object_fraction: f64,
-    /// Render the background from a zero latent, so it cannot depend on the image (the paper's
-    /// choice for CLEVR).
+    /// Fresh models only: render the background from a zero latent, so it cannot depend on the
+    /// image (the paper's choice for CLEVR); stored in the model's config.
     pub zero_background: bool,
     pub seed: u64,
     pub checkpoint_every: u64,
@@ -172,7 +172,11 @@ impl Trainer {
         } else {
             let colf = match &opts.init {
                 Some(p) => Colf::load(p)?,
-                None => Colf::init(&Config::preset(&opts.preset)?, opts.seed)?,
+                None => {
+                    let mut cfg = Config::preset(&opts.preset)?;
+                    cfg.zero_background = opts.zero_background;
+                    Colf::init(&cfg, opts.seed)?
+                }
             };
             (colf, None, 0, 0)
         };
@@ -240,12 +244,7 @@ impl Trainer {
             .map(|s| image_tensor(cfg, &s.input, s.input_h, s.input_w, &dev))
             .collect::<candle_core::Result<Vec<_>>>()?;
         let encoded = model.encode(&Tensor::cat(&images, 0)?, k, &mut rng)?;
-        let bg = if opts.zero_background {
-            encoded.bg.zeros_like()?
-        } else {
-            encoded.bg.clone()
-        };
-        let fields = model.prepare(&encoded.fg, &bg)?;
+        let fields = model.prepare(&encoded.fg, &encoded.bg)?;
         let frames: Vec<Vec<DMat4>> = samples.iter().map(|s| vec![s.input_camera; k]).collect();
         let scene_rays: Vec<SceneRays> = samples
             .iter()
