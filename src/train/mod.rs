@@ -2,5 +2,5 @@
 
 pub mod adam;
 pub mod batch;
-pub mod trainer;
 pub mod plot;
+pub mod trainer;
