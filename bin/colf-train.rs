@@ -5,7 +5,12 @@ fn main() {
     let args = TrainArgs::parse();
     colf::cli::run("train", || match &args.command {
         Some(TrainCommand::Init(init)) => {
-            let summary = colf::model::init_model_file(&init.preset, init.seed, &init.output)?;
+            let summary = colf::model::init_model_file(
+                &init.preset,
+                &init.config_overrides,
+                init.seed,
+                &init.output,
+            )?;
             eprintln!("colf-train: {summary}");
             Ok(())
         }

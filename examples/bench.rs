@@ -189,6 +189,7 @@ fn measure_train(steps: u64) -> Result<Value> {
         mask_weight: 0.0,
         object_fraction: 0.0,
         zero_background: false,
+        config_overrides: Vec::new(),
         seed: 0,
         checkpoint_every: 0,
         eval_every: 0,

@@ -15,6 +15,7 @@
 //! - [`metrics`]: PSNR, SSIM, ARI, FG-ARI exactly as uORF / scikit-image / scikit-learn.
 //! - [`tensorfile`]: deterministic safetensors writing, checked reading.
 
+pub mod alloc;
 pub mod camera;
 pub mod camera_path;
 pub mod cli;

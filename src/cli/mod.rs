@@ -14,6 +14,7 @@ pub mod train;
 /// Runs the body of stage `colf-<stage>`: exit 0 on success; on error, one line
 /// `colf-<stage>: error: <cause chain>` on stderr and exit 1. Usage errors are clap's (exit 2).
 pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
+    crate::alloc::tune_for_tensors();
     match body() {
         Ok(()) => std::process::exit(0),
         Err(err) => {

@@ -115,6 +115,11 @@ pub struct RunArgs {
     #[arg(long)]
     pub zero_background: bool,
 
+    /// Override a field of a fresh model's config, KEY=VALUE (repeatable; keys as in
+    /// docs/model.md, e.g. `--set ray_fourier_freqs=6`). Ignored with --init or --resume.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub config_overrides: Vec<String>,
+
     /// Seed of the data order, ray sampling, slot noise and (fresh models) initialisation.
     #[arg(long, default_value_t = 0, value_name = "S")]
     pub seed: u64,
@@ -201,6 +206,11 @@ pub struct InitArgs {
     #[arg(long, default_value_t = 0, value_name = "S")]
     pub seed: u64,
 
+    /// Override a field of the preset's config, KEY=VALUE (repeatable; keys as in
+    /// docs/model.md, e.g. `--set ray_fourier_freqs=6`).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub config_overrides: Vec<String>,
+
     /// Where to write the model (`-`: stdout).
     #[arg(short, long, value_name = "MODEL")]
     pub output: String,
@@ -233,6 +243,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         mask_weight: args.mask_weight,
         object_fraction: args.object_fraction,
         zero_background: args.zero_background,
+        config_overrides: args.config_overrides.clone(),
         seed: args.seed,
         checkpoint_every: args.checkpoint_every,
         eval_every: args.eval_every,

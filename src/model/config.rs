@@ -133,6 +133,30 @@ impl Config {
         }
     }
 
+    /// Applies `key=value` overrides (the value is JSON, or else a bare string) to this config,
+    /// for experiments and recipes: `ray_fourier_freqs=6`, `zero_background=true`. Unknown keys
+    /// and ill-typed values are refused, and the result is validated.
+    pub fn with_overrides(&self, overrides: &[String]) -> Result<Config> {
+        if overrides.is_empty() {
+            return Ok(self.clone());
+        }
+        let mut value = serde_json::to_value(self).expect("config serialises");
+        let object = value.as_object_mut().expect("config is an object");
+        for item in overrides {
+            let (key, text) = item
+                .split_once('=')
+                .with_context(|| format!("config override `{item}` is not KEY=VALUE"))?;
+            let key = key.trim();
+            let parsed = serde_json::from_str(text.trim())
+                .unwrap_or_else(|_| serde_json::Value::String(text.trim().to_string()));
+            object.insert(key.to_string(), parsed);
+        }
+        let cfg: Config =
+            serde_json::from_value(value).map_err(|e| anyhow::anyhow!("config override: {e}"))?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
     /// Parses and validates a config stored in a checkpoint.
     pub fn from_json(text: &str) -> Result<Config> {
         let cfg: Config = serde_json::from_str(text).context("invalid model config")?;
@@ -237,5 +261,27 @@ mod tests {
             .replace("\"slot_dim\"", "\"mystery\":1,\"slot_dim\"");
         assert!(Config::from_json(&json).is_err());
         assert!(Config::preset("huge").is_err());
+    }
+
+    #[test]
+    fn overrides_change_named_fields_and_refuse_unknown_ones() {
+        let cfg = Config::small()
+            .with_overrides(&["ray_fourier_freqs=4".into(), "zero_background=true".into()])
+            .unwrap();
+        assert_eq!(cfg.ray_fourier_freqs, 4);
+        assert!(cfg.zero_background);
+        assert_eq!(cfg.lfn_hidden, Config::small().lfn_hidden);
+        assert!(Config::small()
+            .with_overrides(&["no_such_knob=1".into()])
+            .is_err());
+        assert!(Config::small()
+            .with_overrides(&["lfn_hidden=wide".into()])
+            .is_err());
+        assert!(Config::small()
+            .with_overrides(&["lfn_hidden".into()])
+            .is_err());
+        assert!(Config::small()
+            .with_overrides(&["slot_dim=0".into()])
+            .is_err());
     }
 }

@@ -558,8 +558,13 @@ pub fn resolve_model_path(explicit: Option<&str>) -> Result<PathBuf> {
 
 /// `colf-train init`: writes a freshly initialised model of `preset` to `output` (`-`: stdout)
 /// and returns a one-line summary (preset, parameters, size, identity).
-pub fn init_model_file(preset: &str, seed: u64, output: &str) -> Result<String> {
-    let cfg = Config::preset(preset)?;
+pub fn init_model_file(
+    preset: &str,
+    overrides: &[String],
+    seed: u64,
+    output: &str,
+) -> Result<String> {
+    let cfg = Config::preset(preset)?.with_overrides(overrides)?;
     let model = Colf::init(&cfg, seed)?;
     let (bytes, id) = model.to_bytes()?;
     crate::io::write_output(output, &bytes, true)?;
