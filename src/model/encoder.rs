@@ -12,7 +12,9 @@
 //! up3,up2,up1}.{weight,bias}` (weight [out, in, 3, 3]).
 
 use super::config::Config;
-use candle_core::{Device, Module, Result, Tensor};
+use super::conv::{conv3x3, upsample2x};
+use super::fused::Activation;
+use candle_core::{Device, Result, Tensor};
 use candle_nn::{conv2d, Conv2d, Conv2dConfig, VarBuilder};
 
 /// The 1-D bilinear ×2 upsampling matrix [2n, n] (PyTorch `align_corners=False` semantics).
@@ -117,11 +119,13 @@ pub struct Encoder {
     up3: Conv2d,
     up2: Conv2d,
     up1: Conv2d,
+    /// Stride of `down1` (1 or 2).
+    first_stride: usize,
     /// Coordinate channels x, 2−x, y, 2−y [1, 4, S, S].
     coords: Tensor,
-    /// Upsampling from the ¼ grid: (A_h [2n, n], A_wᵀ [n, 2n]), then from the ½ grid.
-    upsample_quarter: (Tensor, Tensor),
-    upsample_half: (Tensor, Tensor),
+    /// Bilinear ×2 upsampling matrices A [2n, n] from the ¼ grid, then from the ½ grid.
+    upsample_quarter: Tensor,
+    upsample_half: Tensor,
     size: usize,
 }
 
@@ -134,10 +138,16 @@ fn conv(cin: usize, cout: usize, stride: usize, vb: VarBuilder) -> Result<Conv2d
     conv2d(cin, cout, 3, cfg, vb)
 }
 
-fn upsampler(n: usize, dev: &Device) -> Result<(Tensor, Tensor)> {
-    let a = Tensor::from_vec(upsample_matrix(n), (2 * n, n), dev)?;
-    let at = a.t()?.contiguous()?;
-    Ok((a, at))
+fn upsampler(n: usize, dev: &Device) -> Result<Tensor> {
+    Tensor::from_vec(upsample_matrix(n), (2 * n, n), dev)
+}
+
+/// One 3×3 conv layer (candle's parameter layout) with a ReLU, on channels-last maps.
+fn conv_relu(layer: &Conv2d, x: &Tensor, stride: usize) -> Result<Tensor> {
+    let bias = layer
+        .bias()
+        .ok_or_else(|| candle_core::Error::Msg("encoder convs have biases".into()))?;
+    conv3x3(x, layer.weight(), bias, stride, Activation::Relu)
 }
 
 impl Encoder {
@@ -168,6 +178,7 @@ impl Encoder {
             up3: conv(c2, c2, 1, vb.pp("up3"))?,
             up2: conv(2 * c2, c2, 1, vb.pp("up2"))?,
             up1: conv(c2 + c1, f, 1, vb.pp("up1"))?,
+            first_stride: cfg.encoder_first_stride,
             coords: Tensor::from_vec(coords, (1, 4, s, s), &dev)?,
             upsample_quarter: upsampler(grid / 4, &dev)?,
             upsample_half: upsampler(grid / 2, &dev)?,
@@ -175,35 +186,27 @@ impl Encoder {
         })
     }
 
-    /// Bilinear ×2 upsampling of [B, C, n, n] as two matmuls (differentiable).
-    fn upsample(x: &Tensor, (a_h, a_w_t): &(Tensor, Tensor)) -> Result<Tensor> {
-        let x = x.broadcast_matmul(a_w_t)?; // [B, C, n, 2n]
-        a_h.broadcast_matmul(&x) // [B, C, 2n, 2n]
-    }
-
-    /// images [B, 3, S, S] in [0, 1] → tokens [B, grid², feature_dim].
+    /// images [B, 3, S, S] in [0, 1] → tokens [B, grid², feature_dim]. Inside, maps are
+    /// channels-last [B, H, W, C] (see `conv.rs`).
     pub fn forward(&self, images: &Tensor) -> Result<Tensor> {
         let (b, _, h, w) = images.dims4()?;
         if h != self.size || w != self.size {
             candle_core::bail!("encoder expects {0}×{0} images, got {h}×{w}", self.size);
         }
         let coords = self.coords.broadcast_as((b, 4, h, w))?;
-        let x = Tensor::cat(&[images, &coords], 1)?;
-        let down1 = self.down1.forward(&x)?.relu()?;
-        let down2 = self.down2.forward(&down1)?.relu()?;
-        let down3 = self.down3.forward(&down2)?.relu()?;
-        let up3 = Self::upsample(&self.up3.forward(&down3)?.relu()?, &self.upsample_quarter)?;
-        let up2 = self
-            .up2
-            .forward(&Tensor::cat(&[&up3, &down2], 1)?)?
-            .relu()?;
-        let up2 = Self::upsample(&up2, &self.upsample_half)?;
-        let features = self
-            .up1
-            .forward(&Tensor::cat(&[&up2, &down1], 1)?)?
-            .relu()?;
-        // [B, C, g, g] → [B, g², C]
-        features.flatten_from(2)?.transpose(1, 2)?.contiguous()
+        let x = Tensor::cat(&[images, &coords], 1)?
+            .permute((0, 2, 3, 1))?
+            .contiguous()?;
+        let down1 = conv_relu(&self.down1, &x, self.first_stride)?;
+        let down2 = conv_relu(&self.down2, &down1, 2)?;
+        let down3 = conv_relu(&self.down3, &down2, 2)?;
+        let up3 = upsample2x(&conv_relu(&self.up3, &down3, 1)?, &self.upsample_quarter)?;
+        let up2 = conv_relu(&self.up2, &Tensor::cat(&[&up3, &down2], 3)?, 1)?;
+        let up2 = upsample2x(&up2, &self.upsample_half)?;
+        let features = conv_relu(&self.up1, &Tensor::cat(&[&up2, &down1], 3)?, 1)?;
+        // [B, g, g, C] → [B, g², C]
+        let (_, g, _, c) = features.dims4()?;
+        features.reshape((b, g * g, c))
     }
 }
 

@@ -1,6 +1,7 @@
 //! Small building blocks shared by the modules, written only with ops that have a backward
 //! (CANDLE-NOTES: the fused layer norm records no gradient).
 
+use super::fused::{dense, Activation};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{linear, Linear, VarBuilder};
 
@@ -116,17 +117,30 @@ impl Mlp {
 
 impl Module for Mlp {
     /// x [.., in] → [.., out]; leading axes are flattened so every layer is one plain 2-D
-    /// matmul (candle's `Linear` on 3-D input takes a slower broadcast path).
+    /// matmul (candle's `Linear` on 3-D input takes a slower broadcast path), run as a fused
+    /// dense layer (`fused.rs`: bias and ReLU in the same op, fast backward).
     fn forward(&self, x: &Tensor) -> Result<Tensor> {
         let dims = x.dims().to_vec();
         let inner = dims[dims.len() - 1];
         let rows = x.elem_count() / inner.max(1);
         let mut x = x.reshape((rows, inner))?;
         for (i, layer) in self.layers.iter().enumerate() {
-            x = layer.forward(&x)?;
-            if i + 1 < self.layers.len() {
-                x = x.relu()?;
-            }
+            let act = if i + 1 < self.layers.len() {
+                Activation::Relu
+            } else {
+                Activation::Identity
+            };
+            x = match layer.bias() {
+                Some(bias) => dense(&x, &layer.weight().t()?, bias, act)?,
+                None => {
+                    let y = layer.forward(&x)?;
+                    if act == Activation::Relu {
+                        y.relu()?
+                    } else {
+                        y
+                    }
+                }
+            };
         }
         let mut out_dims = dims;
         let last = out_dims.len() - 1;

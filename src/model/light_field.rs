@@ -6,6 +6,7 @@
 //! computed once per slot ([`SlotWeights`]) and reused for any number of rays, views and chunks;
 //! the authors' code re-ran the hypernetworks for every (slot, view) pair.
 
+use super::fused::{dense, Activation};
 use super::hypernet::GeneratedLayer;
 use candle_core::{Result, Tensor};
 
@@ -57,10 +58,12 @@ impl SlotWeights {
     pub fn forward(&self, rays: &Tensor) -> Result<Tensor> {
         let mut x = rays.clone();
         for (i, layer) in self.layers.iter().enumerate() {
-            x = x.matmul(&layer.weight)?.broadcast_add(&layer.bias)?;
-            if i + 1 < self.layers.len() {
-                x = x.relu()?;
-            }
+            let act = if i + 1 < self.layers.len() {
+                Activation::Relu
+            } else {
+                Activation::Identity
+            };
+            x = dense(&x, &layer.weight, &layer.bias, act)?;
         }
         Ok(x)
     }

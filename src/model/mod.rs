@@ -11,7 +11,9 @@
 pub mod checkpoint;
 pub mod compositor;
 pub mod config;
+pub mod conv;
 pub mod encoder;
+pub mod fused;
 pub mod heads;
 pub mod hypernet;
 pub mod init;
