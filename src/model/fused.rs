@@ -111,7 +111,14 @@ impl CustomOp3 for Dense {
         let rank = w_stride.len();
         let (w_rs, w_cs) = (w_stride[rank - 2] as isize, w_stride[rank - 1] as isize);
         let w_batch = if rank == 3 { w_stride[0] } else { 0 };
-        let mut y = vec![0f32; batch * n * out];
+        let len = batch * n * out;
+        let mut y: Vec<f32> = Vec::with_capacity(len);
+        // SAFETY: every element is written by the gemms below (read_dst = false, beta·lhs·rhs
+        // only) before anything reads it; skipping the zero fill saves a pass over the output.
+        #[allow(clippy::uninit_vec)]
+        unsafe {
+            y.set_len(len);
+        }
         let parallelism = gemm_parallelism(n * k * out);
         for s in 0..batch {
             // SAFETY: the pointers cover [n, k], [k, out] (with w's strides, inside w's
@@ -205,15 +212,12 @@ impl CustomOp2 for ReluMask {
             &f32_slice(gs, "grad")?[g0..g1],
             &f32_slice(rs, "res")?[r0..r1],
         );
-        const CHUNK: usize = 1 << 14;
-        let mut out = vec![0f32; g.len()];
-        out.par_chunks_mut(CHUNK)
-            .zip(g.par_chunks(CHUNK).zip(r.par_chunks(CHUNK)))
-            .for_each(|(o, (g, r))| {
-                for ((o, g), r) in o.iter_mut().zip(g).zip(r) {
-                    *o = if *r > 0.0 { *g } else { 0.0 };
-                }
-            });
+        let out: Vec<f32> = g
+            .par_iter()
+            .zip(r.par_iter())
+            .with_min_len(1 << 14)
+            .map(|(g, r)| if *r > 0.0 { *g } else { 0.0 })
+            .collect();
         Ok((CpuStorage::F32(out), gl.shape().clone()))
     }
 }
