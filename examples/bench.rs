@@ -4,8 +4,12 @@
 //! Each measurement runs in a fresh child process (this program with `--one SPEC`), so its peak
 //! resident memory (VmHWM) is its own. Timings are medians of repeated runs after a warm-up.
 //! FLOPs are counted analytically from the model config (2 per multiply-add of every matmul on
-//! the per-ray path: light field, heads, compositor), so achieved GFLOP/s and the ratio to the
-//! measured matmul peak say how efficiently the hardware is used.
+//! the per-ray path: light field, heads, compositor; for the volumetric baseline, every layer
+//! per sample and slot, its latent columns folded into a per-slot bias as the renderer does), so
+//! achieved GFLOP/s and the ratio to the measured matmul peak say how efficiently the hardware
+//! is used. Renders go through `colf::render_fast` as `colf-render` does; one row measures the
+//! candle path (`Colf::render_rays`, what training uses) for comparison. Measurements that take
+//! longer than 2 s are run once (no warm-up).
 
 use anyhow::{bail, Context, Result};
 use colf::model::{Colf, Config};
@@ -47,6 +51,37 @@ fn lightfield_flops_per_ray_field(cfg: &Config) -> f64 {
     ));
     comp.push(1);
     (lfn + head(3) + head(1) + mlp(&comp)) as f64
+}
+
+/// Multiply-adds ×2 of one sample of one slot through the volumetric decoder.
+fn volumetric_flops_per_sample_slot(cfg: &Config) -> f64 {
+    let v = cfg.volumetric.as_ref().expect("volumetric config");
+    let (w, e, c) = (v.hidden, v.pos_dim(), v.color_hidden);
+    let macs = e * w
+        + (v.layers_before_skip - 1) * w * w
+        + (w + e) * w
+        + (v.layers_after_skip - 1) * w * w
+        + w * (1 + c)
+        + c * 3;
+    2.0 * macs as f64
+}
+
+/// Times `f`: a warm-up run, then the median of `reps` runs; a warm-up longer than 2 s is
+/// the only run.
+fn time_median(reps: usize, mut f: impl FnMut() -> Result<()>) -> Result<(f64, usize)> {
+    let t = Instant::now();
+    f()?;
+    let first = t.elapsed().as_secs_f64();
+    if first > 2.0 {
+        return Ok((first, 1));
+    }
+    let times: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            f().map(|_| t.elapsed().as_secs_f64())
+        })
+        .collect::<Result<_>>()?;
+    Ok((median(times), reps))
 }
 
 /// The rays of a 128² clevr567-like camera (distance 12.4, elevation 40°).
@@ -100,7 +135,14 @@ fn measure_matmul() -> Result<Value> {
     )
 }
 
-fn measure_render(preset: &str, slots: usize, size: usize, reps: usize) -> Result<Value> {
+fn measure_render(
+    preset: &str,
+    slots: usize,
+    size: usize,
+    samples: Option<usize>,
+    candle_path: bool,
+    reps: usize,
+) -> Result<Value> {
     let cfg = Config::preset(preset)?;
     let model = Colf::init(&cfg, 0)?;
     let d = cfg.slot_dim;
@@ -114,22 +156,42 @@ fn measure_render(preset: &str, slots: usize, size: usize, reps: usize) -> Resul
     let (origins, dirs) = frame_rays(size);
     let t = Instant::now();
     let prepared = model.prepare(&latents, &noise(d, 3))?;
+    let renderer = colf::render_fast::FastRenderer::new(&model, &prepared, &frames)?;
     let prepare_ms = t.elapsed().as_secs_f64() * 1e3;
-    let _ = model.render_rays(&prepared, &frames, &origins, &dirs)?; // warm-up
-    let times: Vec<f64> = (0..reps)
-        .map(|_| {
-            let t = Instant::now();
-            model
-                .render_rays(&prepared, &frames, &origins, &dirs)
-                .map(|_| t.elapsed().as_secs_f64())
-        })
-        .collect::<Result<_>>()?;
-    let s = median(times);
-    let flops = lightfield_flops_per_ray_field(&cfg) * (size * size * (slots + 1)) as f64;
+    let (s, runs) = time_median(reps, || {
+        if candle_path {
+            model.render_rays(&prepared, &frames, &origins, &dirs)?;
+        } else {
+            renderer.render(&origins, &dirs, samples, None)?;
+        }
+        Ok(())
+    })?;
+    let rays = (size * size) as f64;
+    let fields = (slots + 1) as f64;
+    let (flops, what, samples) = match &cfg.volumetric {
+        Some(v) => {
+            let n = samples.unwrap_or(v.samples);
+            (
+                volumetric_flops_per_sample_slot(&cfg) * rays * fields * n as f64,
+                "render one frame (volumetric)",
+                json!(n),
+            )
+        }
+        None if candle_path => (
+            lightfield_flops_per_ray_field(&cfg) * rays * fields,
+            "render one frame (candle path)",
+            Value::Null,
+        ),
+        None => (
+            lightfield_flops_per_ray_field(&cfg) * rays * fields,
+            "render one frame",
+            Value::Null,
+        ),
+    };
     Ok(json!({
-        "what": "render one frame", "preset": preset, "slots": slots, "resolution": size,
+        "what": what, "preset": preset, "slots": slots, "resolution": size, "samples": samples,
         "ms": s * 1e3, "fps": 1.0 / s, "gflop_per_frame": flops / 1e9, "gflops": flops / s / 1e9,
-        "prepare_ms": prepare_ms, "peak_mib": peak_rss_mib(),
+        "prepare_ms": prepare_ms, "runs": runs, "peak_mib": peak_rss_mib(),
     }))
 }
 
@@ -220,6 +282,8 @@ fn run_one(spec: &Value) -> Result<Value> {
             spec["preset"].as_str().unwrap_or("small"),
             spec["slots"].as_u64().unwrap_or(7) as usize,
             spec["size"].as_u64().unwrap_or(128) as usize,
+            spec["samples"].as_u64().map(|n| n as usize),
+            spec["candle"].as_bool().unwrap_or(false),
             reps,
         ),
         Some("encode") => measure_encode(spec["preset"].as_str().unwrap_or("small"), reps),
@@ -241,14 +305,29 @@ fn main() -> Result<()> {
         .position(|a| a == "--out")
         .and_then(|i| args.get(i + 1).cloned())
         .unwrap_or_else(|| "target/bench/bench.json".into());
+    let only_render = args.iter().any(|a| a == "--render-only");
     let mut specs = vec![json!({"kind": "matmul"})];
     for preset in ["small", "paper"] {
         for slots in [2, 7, 60] {
             specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
         }
-        specs.push(json!({"kind": "encode", "preset": preset}));
+        if !only_render {
+            specs.push(json!({"kind": "encode", "preset": preset}));
+        }
     }
-    specs.push(json!({"kind": "train"}));
+    specs.push(
+        json!({"kind": "render", "preset": "small", "slots": 7, "size": 128, "candle": true}),
+    );
+    for slots in [2, 7, 60] {
+        for samples in [32, 64, 128] {
+            specs.push(json!({"kind": "render", "preset": "volumetric", "slots": slots,
+                              "size": 128, "samples": samples}));
+        }
+    }
+    if !only_render {
+        specs.push(json!({"kind": "encode", "preset": "volumetric"}));
+        specs.push(json!({"kind": "train"}));
+    }
     let exe = std::env::current_exe()?;
     let mut results = Vec::new();
     let mut peak = f64::NAN;
@@ -278,21 +357,24 @@ fn main() -> Result<()> {
         }
         results.push(row);
     }
-    println!("| what | preset | slots | res | ms | FPS | GFLOP/s | of peak | peak MiB |");
-    println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!(
+        "| what | preset | slots | res | samples | ms | FPS | GFLOP/s | of peak | peak MiB |"
+    );
+    println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
     let cell = |v: &Value, digits: usize| {
         v.as_f64()
             .map_or("".to_string(), |x| format!("{x:.digits$}"))
     };
     for r in &results {
         println!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r["what"].as_str().unwrap_or(""),
             r["preset"].as_str().unwrap_or(""),
             r["slots"].as_u64().map_or(String::new(), |v| v.to_string()),
             r["resolution"]
                 .as_u64()
                 .map_or(String::new(), |v| format!("{v}²")),
+            r["samples"].as_u64().map_or(String::new(), |v| v.to_string()),
             cell(&r["ms"], 1),
             cell(&r["fps"], 2),
             cell(&r["gflops"], 1),
@@ -300,6 +382,32 @@ fn main() -> Result<()> {
                 .as_f64()
                 .map_or(String::new(), |x| format!("{:.0} %", 100.0 * x)),
             cell(&r["peak_mib"], 0),
+        );
+    }
+    // Volumetric ÷ light field (small preset, same slot count): the side-by-side ratio.
+    let lf_ms = |slots: u64| {
+        results.iter().find_map(|r| {
+            (r["what"] == "render one frame" && r["preset"] == "small" && r["slots"] == slots)
+                .then(|| r["ms"].as_f64())
+                .flatten()
+        })
+    };
+    let mut ratios = Vec::new();
+    for r in &results {
+        if r["preset"] == "volumetric" && r["samples"].is_u64() {
+            if let (Some(v), Some(lf)) = (r["ms"].as_f64(), lf_ms(r["slots"].as_u64().unwrap_or(0)))
+            {
+                ratios.push(format!(
+                    "{} slots, {} samples: {:.1}x",
+                    r["slots"], r["samples"], v / lf
+                ));
+            }
+        }
+    }
+    if !ratios.is_empty() {
+        println!(
+            "\nvolumetric / light field (small) render time: {}",
+            ratios.join("; ")
         );
     }
     if let Some(train) = results.iter().find(|r| r["steps_per_hour"].is_number()) {

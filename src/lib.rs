@@ -29,6 +29,8 @@ pub mod io;
 pub mod metrics;
 pub mod model;
 pub mod render;
+pub mod render_adaptive;
+pub mod render_fast;
 pub mod render_output;
 pub mod sheet;
 pub mod synth;

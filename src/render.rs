@@ -1,16 +1,31 @@
 //! Rendering: prepared slots + a camera → one frame (colour, compositor weights, ordering).
+//!
+//! Frames are rendered by the fast inference path (`render_fast.rs`: same weights, same result
+//! as the candle path to 1e-4, tested), exactly, or adaptively (`render_adaptive.rs`).
 
 use crate::camera::Frame;
 use crate::codes::Codes;
-use crate::model::{Colf, PreparedSlots};
+use crate::model::Colf;
+use crate::render_adaptive::{render_adaptive, AdaptiveStats};
+use crate::render_fast::FastRenderer;
 use crate::render_output::FrameRender;
 use anyhow::{bail, Result};
 use glam::{DMat4, DVec3};
 
+/// How to render: exact (the default), or adaptive with a threshold ε; samples per ray for a
+/// volumetric model.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RenderOptions {
+    /// Samples per ray (volumetric models only; None: the model's default).
+    pub samples: Option<usize>,
+    /// `Some(ε)`: adaptive rendering (light fields only).
+    pub adaptive: Option<f32>,
+}
+
 /// A scene ready to render from any number of cameras: the hypernetworks have run once per
-/// slot, here, not per view or per chunk.
+/// slot, here, not per view or per chunk, and their weights are laid out for the fast path.
 pub struct PreparedScene {
-    prepared: PreparedSlots,
+    renderer: FastRenderer,
     slot_to_world: Vec<DMat4>,
 }
 
@@ -25,10 +40,34 @@ impl PreparedScene {
             );
         }
         let latents: Vec<Vec<f32>> = codes.slots.iter().map(|s| s.latent.clone()).collect();
+        let slot_to_world: Vec<DMat4> = codes.slots.iter().map(|s| s.slot_to_world).collect();
+        let prepared = model.prepare(&latents, &codes.background)?;
         Ok(PreparedScene {
-            prepared: model.prepare(&latents, &codes.background)?,
-            slot_to_world: codes.slots.iter().map(|s| s.slot_to_world).collect(),
+            renderer: FastRenderer::new(model, &prepared, &slot_to_world)?,
+            slot_to_world,
         })
+    }
+
+    /// Checks options against the model before any frame is rendered.
+    pub fn check_options(&self, opts: &RenderOptions) -> Result<()> {
+        if self.renderer.is_volumetric() {
+            if opts.adaptive.is_some() {
+                bail!("--adaptive applies to light-field models only (this model is volumetric)");
+            }
+        } else if opts.samples.is_some() {
+            bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray per slot)");
+        }
+        if let Some(n) = opts.samples {
+            if n == 0 || n > 4096 {
+                bail!("--samples must be in 1..=4096, not {n}");
+            }
+        }
+        if let Some(eps) = opts.adaptive {
+            if !(eps.is_finite() && eps >= 0.0) {
+                bail!("--adaptive: ε must be a finite number ≥ 0, not {eps}");
+            }
+        }
+        Ok(())
     }
 
     /// Number of foreground slots.
@@ -36,12 +75,33 @@ impl PreparedScene {
         self.slot_to_world.len()
     }
 
-    /// Renders every pixel-centre ray of `frame`.
-    pub fn render_frame(&self, model: &Colf, frame: &Frame) -> Result<FrameRender> {
+    /// Renders every pixel-centre ray of `frame` exactly (`model` is the one the scene was
+    /// prepared with; its weights are already in the scene).
+    pub fn render_frame(&self, _model: &Colf, frame: &Frame) -> Result<FrameRender> {
+        Ok(self.render_frame_with(frame, &RenderOptions::default())?.0)
+    }
+
+    /// Renders every pixel-centre ray of `frame` with `opts`; for an adaptive render, also
+    /// what it evaluated.
+    pub fn render_frame_with(
+        &self,
+        frame: &Frame,
+        opts: &RenderOptions,
+    ) -> Result<(FrameRender, Option<AdaptiveStats>)> {
+        self.check_options(opts)?;
         let rays = frame.rays();
         let origins: Vec<DVec3> = rays.iter().map(|r| r.origin).collect();
         let dirs: Vec<DVec3> = rays.iter().map(|r| r.direction).collect();
-        let out = model.render_rays(&self.prepared, &self.slot_to_world, &origins, &dirs)?;
+        let (out, stats) = match opts.adaptive {
+            Some(eps) => {
+                let (out, stats) = render_adaptive(&self.renderer, frame, &origins, &dirs, eps)?;
+                (out, Some(stats))
+            }
+            None => (
+                self.renderer.render(&origins, &dirs, opts.samples, None)?,
+                None,
+            ),
+        };
         let frame = FrameRender {
             width: frame.intrinsics.w,
             height: frame.intrinsics.h,
@@ -59,7 +119,7 @@ impl PreparedScene {
         {
             bail!("the model produced non-finite colours or weights");
         }
-        Ok(frame)
+        Ok((frame, stats))
     }
 }
 

@@ -33,6 +33,7 @@ fn tiny() -> Config {
         scene_scale: 4.0,
         zero_background: false,
         hypernet_rms_norm: true,
+        volumetric: None,
     }
 }
 

@@ -20,8 +20,17 @@ compositor weights)\n\n\
 background; slotK.weight and slotK.order for slot K (compositor weight in [0, 1] and the \
 world-comparable ordering value)\n\n\
 Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written atomically; a progress line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The hypernetwork \
-runs once per slot per run; rays are evaluated in chunks so memory stays bounded whatever the \
-image size or slot count. --frames A..B renders a subset (half-open, like Rust ranges: 0..10 \
+runs once per slot per run; rays are evaluated in chunks of a few hundred, one chunk per thread \
+at a time, so memory stays bounded whatever the image size or slot count and the output does not \
+depend on the number of threads.\n\n\
+Without --adaptive the render is exact. --adaptive [EPS] first renders the compositor weights \
+at 1/4 resolution, dilates each slot's weight map by one coarse pixel, and then evaluates a slot \
+at full resolution only where that weight exceeds EPS (default 0.01); the background is always \
+evaluated. A slot left out of a pixel has weight 0 and ordering value +inf in the EXR. The \
+speed/accuracy trade is measured in docs/tradeoff.md.\n\n\
+A volumetric model (colf-train init --preset volumetric: the uORF-style baseline) is rendered \
+by sampling --samples N points per ray (default: the model's, 64); its EXR ordering channel \
+holds each slot's expected depth along the ray. --frames A..B renders a subset (half-open, like Rust ranges: 0..10 \
 is frames 0 to 9; A.. and ..B work too) so batches can be split across processes.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-render scene.codes --cameras transforms.json --out renders/ --masks\n  \
@@ -56,6 +65,17 @@ pub struct RenderArgs {
     /// Model file (default: $COLF_MODEL, else the bundled default model).
     #[arg(long, value_name = "M")]
     pub model: Option<String>,
+
+    /// Adaptive rendering: render the compositor weights at 1/4 resolution first, then evaluate
+    /// each slot at full resolution only where its dilated coarse weight exceeds EPS (the
+    /// background always). Bare --adaptive uses EPS = 0.01. Light-field models only.
+    #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.01")]
+    pub adaptive: Option<f32>,
+
+    /// Samples per ray of a volumetric (baseline) model (default: the model's, 64 for the
+    /// `volumetric` preset). Refused for light-field models.
+    #[arg(long, value_name = "N")]
+    pub samples: Option<usize>,
 
     /// No per-frame progress lines on stderr.
     #[arg(short, long)]
@@ -99,14 +119,19 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     }
     let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
     let scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
+    let opts = crate::render::RenderOptions {
+        samples: args.samples,
+        adaptive: args.adaptive,
+    };
+    scene.check_options(&opts)?;
     let out_dir = Path::new(&args.out);
     std::fs::create_dir_all(out_dir)
         .with_context(|| format!("{}: cannot create the output folder", args.out))?;
     let total = names.len();
     for (n, (index, name)) in range.zip(&names).enumerate() {
         let started = std::time::Instant::now();
-        let frame = scene
-            .render_frame(&model, &cameras.frames[index])
+        let (frame, stats) = scene
+            .render_frame_with(&cameras.frames[index], &opts)
             .with_context(|| format!("frame {index}"))?;
         let png = crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
         write_atomic(&out_dir.join(format!("{name}.png")), &png)?;
@@ -120,8 +145,14 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             write_atomic(&out_dir.join(format!("{name}.exr")), &frame.exr_bytes()?)?;
         }
         if !args.quiet {
+            let adaptive = stats.map_or(String::new(), |s| {
+                format!(
+                    ", adaptive: {:.0} % of slot evaluations",
+                    100.0 * s.evaluated as f64 / s.possible.max(1) as f64
+                )
+            });
             eprintln!(
-                "colf-render: {}/{total} {name} ({}x{}, {} slots) {:.0} ms",
+                "colf-render: {}/{total} {name} ({}x{}, {} slots) {:.0} ms{adaptive}",
                 n + 1,
                 frame.width,
                 frame.height,

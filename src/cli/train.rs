@@ -198,8 +198,9 @@ refused on a terminal). The same --preset and --seed give a byte-identical file.
 parameter count and identity are printed on stderr."
 )]
 pub struct InitArgs {
-    /// Size preset.
-    #[arg(long, value_name = "PRESET", value_parser = ["small", "paper"], default_value = "small")]
+    /// Size preset (`volumetric`: the uORF-style volumetric baseline decoder on the small
+    /// encoder, for speed comparisons; it renders but does not train).
+    #[arg(long, value_name = "PRESET", value_parser = ["small", "paper", "volumetric"], default_value = "small")]
     pub preset: String,
 
     /// Seed of the weight initialisation.

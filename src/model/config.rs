@@ -63,6 +63,81 @@ pub struct Config {
     /// Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub hypernet_rms_norm: bool,
+    /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
+    /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
+    /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
+    /// along each ray, density-weighted slot composition, alpha compositing). A volumetric model
+    /// keeps the encoder and slot attention; the `lfn_*`, `hypernet_*`, `head_*` and
+    /// `compositor_*` sizes are then unused. Not written when absent, so the files and
+    /// identities of light-field models are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub volumetric: Option<VolumetricConfig>,
+}
+
+/// Sizes of the volumetric (uORF-style) baseline decoder; see `volumetric.rs`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumetricConfig {
+    /// Width of every hidden layer (uORF: 64).
+    pub hidden: usize,
+    /// ReLU layers before the skip connection, the first taking [γ(p), z] (uORF: 3).
+    pub layers_before_skip: usize,
+    /// ReLU layers from the skip connection on, the first taking [h, γ(p), z] (uORF: 3).
+    pub layers_after_skip: usize,
+    /// Hidden width of the colour head (uORF: 32).
+    pub color_hidden: usize,
+    /// Positional-encoding frequencies per coordinate: γ(p) = [p, sin(2^k·π·p), cos(2^k·π·p)],
+    /// k < L (uORF: 5, so 33 inputs).
+    pub pos_freqs: usize,
+    /// Samples per ray when the caller does not choose (uORF: 64).
+    pub samples: usize,
+    /// Near and far bounds of the samples along the ray, world units from the ray origin
+    /// (uORF on CLEVR: 6 and 20).
+    pub near: f64,
+    pub far: f64,
+}
+
+impl VolumetricConfig {
+    /// uORF's decoder sizes.
+    pub fn uorf() -> VolumetricConfig {
+        VolumetricConfig {
+            hidden: 64,
+            layers_before_skip: 3,
+            layers_after_skip: 3,
+            color_hidden: 32,
+            pos_freqs: 5,
+            samples: 64,
+            near: 6.0,
+            far: 20.0,
+        }
+    }
+
+    /// Size of the positional encoding γ(p).
+    pub fn pos_dim(&self) -> usize {
+        3 * (1 + 2 * self.pos_freqs)
+    }
+
+    fn validate(&self) -> Result<()> {
+        if self.hidden == 0
+            || self.layers_before_skip == 0
+            || self.layers_after_skip == 0
+            || self.color_hidden == 0
+            || self.samples == 0
+        {
+            bail!("model config: volumetric sizes must be positive");
+        }
+        if self.pos_freqs > 16 || self.hidden > 4096 || self.samples > 4096 {
+            bail!("model config: a volumetric size is implausibly large");
+        }
+        if !(self.near.is_finite()
+            && self.far.is_finite()
+            && 0.0 <= self.near
+            && self.near < self.far)
+        {
+            bail!("model config: volumetric `near` and `far` must satisfy 0 ≤ near < far");
+        }
+        Ok(())
+    }
 }
 
 impl Config {
@@ -91,6 +166,7 @@ impl Config {
             scene_scale: 8.0,
             zero_background: false,
             hypernet_rms_norm: true,
+            volumetric: None,
         }
     }
 
@@ -121,6 +197,17 @@ impl Config {
             scene_scale: 8.0,
             zero_background: false,
             hypernet_rms_norm: true,
+            volumetric: None,
+        }
+    }
+
+    /// The volumetric baseline: the `small` encoder and slot attention (slot dim 64, uORF's
+    /// latent size) with uORF's decoder instead of light fields (see `volumetric.rs`).
+    pub fn volumetric() -> Config {
+        Config {
+            preset: "volumetric".into(),
+            volumetric: Some(VolumetricConfig::uorf()),
+            ..Config::small()
         }
     }
 
@@ -129,8 +216,14 @@ impl Config {
         match name {
             "small" => Ok(Config::small()),
             "paper" => Ok(Config::paper()),
-            other => bail!("unknown preset `{other}` (known: small, paper)"),
+            "volumetric" => Ok(Config::volumetric()),
+            other => bail!("unknown preset `{other}` (known: small, paper, volumetric)"),
         }
+    }
+
+    /// True when slots are decoded by the volumetric baseline instead of light fields.
+    pub fn is_volumetric(&self) -> bool {
+        self.volumetric.is_some()
     }
 
     /// Applies `key=value` overrides (the value is JSON, or else a bare string) to this config,
@@ -211,6 +304,9 @@ impl Config {
         if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
             bail!("model config: `scene_scale` must be a positive number");
         }
+        if let Some(v) = &self.volumetric {
+            v.validate()?;
+        }
         Ok(())
     }
 
@@ -246,6 +342,22 @@ mod tests {
         assert_eq!(Config::small().lfn_dims(), vec![6, 128, 128, 32]);
         assert_eq!(Config::paper().lfn_dims(), vec![6, 256, 256, 64]);
         assert_eq!(Config::small().token_grid(), 32);
+    }
+
+    #[test]
+    fn volumetric_preset_round_trips_and_light_field_json_is_unchanged() {
+        let cfg = Config::volumetric();
+        cfg.validate().unwrap();
+        assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
+        assert_eq!(cfg.volumetric.as_ref().unwrap().pos_dim(), 33);
+        assert!(!Config::small().to_json().contains("volumetric"));
+        let mut bad = Config::volumetric();
+        bad.volumetric.as_mut().unwrap().far = 1.0;
+        assert!(bad.validate().is_err());
+        let json = cfg
+            .to_json()
+            .replace("\"samples\"", "\"mystery\":1,\"samples\"");
+        assert!(Config::from_json(&json).is_err());
     }
 
     #[test]

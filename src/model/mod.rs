@@ -21,6 +21,7 @@ pub mod layers;
 pub mod light_field;
 pub mod rays;
 pub mod slot_attention;
+pub mod volumetric;
 
 pub use config::Config;
 pub use light_field::SlotWeights;
@@ -36,13 +37,29 @@ use rand::SeedableRng;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-/// The differentiable model. Parameters live under `encoder.`, `slot_attention.`,
-/// `hypernet_fg.`, `hypernet_bg.`, `heads.` and `compositor.`.
+/// The differentiable model. Parameters live under `encoder.`, `slot_attention.` and the
+/// decoder's prefixes: `hypernet_fg.`, `hypernet_bg.`, `heads.` and `compositor.` for light
+/// fields, `volumetric.` for the volumetric baseline (`Config::volumetric`).
 #[derive(Clone, Debug)]
 pub struct ColfModel {
     pub cfg: Config,
     pub encoder: encoder::Encoder,
     pub slot_attention: slot_attention::SlotAttention,
+    pub decoder: Decoder,
+}
+
+/// How slots become pixels.
+#[derive(Clone, Debug)]
+pub enum Decoder {
+    /// COLF: per-slot light fields from hypernetworks, heads and the compositor.
+    LightField(Box<LightFieldDecoder>),
+    /// The uORF-style volumetric baseline (inference only; see `volumetric.rs`).
+    Volumetric(Box<volumetric::Volumetric>),
+}
+
+/// The light-field decoder's modules.
+#[derive(Clone, Debug)]
+pub struct LightFieldDecoder {
     pub hypernet_fg: hypernet::HyperNet,
     pub hypernet_bg: hypernet::HyperNet,
     pub heads: heads::Heads,
@@ -64,16 +81,66 @@ pub struct Decoded {
     pub ordering: Tensor,
 }
 
+/// A light-field model's decoder modules read as fields of the model (`model.heads`,
+/// `model.hypernet_fg`, …), as before the volumetric baseline existed.
+///
+/// # Panics
+/// On a volumetric model, which has none of them: code that handles any model uses
+/// [`ColfModel::light_field`], and [`ColfModel::prepare`] / [`ColfModel::decode`] return errors.
+impl std::ops::Deref for ColfModel {
+    type Target = LightFieldDecoder;
+    fn deref(&self) -> &LightFieldDecoder {
+        self.light_field()
+            .expect("a light-field model (this one is volumetric)")
+    }
+}
+
 impl ColfModel {
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<ColfModel> {
+        let encoder = encoder::Encoder::new(cfg, vb.pp("encoder"))?;
+        let slot_attention = slot_attention::SlotAttention::new(cfg, vb.pp("slot_attention"))?;
+        let decoder = if cfg.is_volumetric() {
+            Decoder::Volumetric(Box::new(volumetric::Volumetric::new(
+                cfg,
+                vb.pp("volumetric"),
+            )?))
+        } else {
+            Decoder::LightField(Box::new(LightFieldDecoder {
+                hypernet_fg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_fg"))?,
+                hypernet_bg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_bg"))?,
+                heads: heads::Heads::new(cfg, vb.pp("heads"))?,
+                compositor: compositor::Compositor::new(cfg, vb.pp("compositor"))?,
+            }))
+        };
         Ok(ColfModel {
             cfg: cfg.clone(),
-            encoder: encoder::Encoder::new(cfg, vb.pp("encoder"))?,
-            slot_attention: slot_attention::SlotAttention::new(cfg, vb.pp("slot_attention"))?,
-            hypernet_fg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_fg"))?,
-            hypernet_bg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_bg"))?,
-            heads: heads::Heads::new(cfg, vb.pp("heads"))?,
-            compositor: compositor::Compositor::new(cfg, vb.pp("compositor"))?,
+            encoder,
+            slot_attention,
+            decoder,
+        })
+    }
+
+    /// The light-field decoder (None for a volumetric model).
+    pub fn light_field(&self) -> Option<&LightFieldDecoder> {
+        match &self.decoder {
+            Decoder::LightField(lf) => Some(lf),
+            Decoder::Volumetric(_) => None,
+        }
+    }
+
+    /// The volumetric decoder (None for a light-field model).
+    pub fn volumetric(&self) -> Option<&volumetric::Volumetric> {
+        match &self.decoder {
+            Decoder::Volumetric(v) => Some(v),
+            Decoder::LightField(_) => None,
+        }
+    }
+
+    fn light_field_or_err(&self) -> candle_core::Result<&LightFieldDecoder> {
+        self.light_field().ok_or_else(|| {
+            candle_core::Error::Msg(
+                "this is a volumetric (baseline) model: it renders, but light-field training and decoding do not apply".into(),
+            )
         })
     }
 
@@ -96,21 +163,23 @@ impl ColfModel {
     /// Runs the hypernetworks once: fg [B, K, D], bg [B, D] → the B·(1 + K) light fields,
     /// scene-major, background first in each scene.
     pub fn prepare(&self, fg: &Tensor, bg: &Tensor) -> candle_core::Result<SlotWeights> {
+        let lf = self.light_field_or_err()?;
         let (b, k, d) = fg.dims3()?;
         let bg_w = SlotWeights {
-            layers: self.hypernet_bg.forward(bg)?,
+            layers: lf.hypernet_bg.forward(bg)?,
         };
         if k == 0 {
             return Ok(bg_w);
         }
         let fg_w = SlotWeights {
-            layers: self.hypernet_fg.forward(&fg.reshape((b * k, d))?)?,
+            layers: lf.hypernet_fg.forward(&fg.reshape((b * k, d))?)?,
         };
         SlotWeights::join_scenes(&bg_w, Some(&fg_w), b, k)
     }
 
     /// Evaluates prepared light fields on encoded rays and composites them.
     pub fn decode(&self, fields: &SlotWeights, rays: &RayBatch) -> candle_core::Result<Decoded> {
+        let lf = self.light_field_or_err()?;
         let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
         if fields.num_fields()? != b * s {
             candle_core::bail!(
@@ -121,10 +190,10 @@ impl ColfModel {
             );
         }
         let features = fields.forward(&rays.coords)?; // [B·S, R, F]
-        let (color, ordering) = self.heads.forward(&features)?;
+        let (color, ordering) = lf.heads.forward(&features)?;
         let colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]
         let ordering = ordering.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
-        let comp = self
+        let comp = lf
             .compositor
             .forward(&ordering.contiguous()?, &rays.shift)?;
         let rgb = comp.weights.unsqueeze(3)?.broadcast_mul(&colors)?.sum(2)?;
@@ -153,7 +222,10 @@ pub struct Encoded {
 /// slots, reusable for any number of rays, views and chunks.
 #[derive(Clone, Debug)]
 pub struct PreparedSlots {
-    fields: SlotWeights,
+    /// The generated light fields (None for a volumetric model).
+    fields: Option<SlotWeights>,
+    /// The latents, background first (what a volumetric model conditions on).
+    latents: Vec<Vec<f32>>,
     num_fg: usize,
 }
 
@@ -161,6 +233,16 @@ impl PreparedSlots {
     /// Number of foreground slots K.
     pub fn num_fg(&self) -> usize {
         self.num_fg
+    }
+
+    /// The generated light-field weights of the 1 + K fields (None for a volumetric model).
+    pub fn light_fields(&self) -> Option<&SlotWeights> {
+        self.fields.as_ref()
+    }
+
+    /// The 1 + K slot latents, background first.
+    pub fn latents(&self) -> &[Vec<f32>] {
+        &self.latents
     }
 }
 
@@ -405,11 +487,21 @@ impl Colf {
             bail!("slot latents must be finite");
         }
         let k = fg_latents.len();
+        let mut latents = vec![bg_latent.to_vec()];
+        latents.extend(fg_latents.iter().cloned());
+        if self.model.volumetric().is_some() {
+            return Ok(PreparedSlots {
+                fields: None,
+                latents,
+                num_fg: k,
+            });
+        }
         let flat: Vec<f32> = fg_latents.iter().flatten().copied().collect();
         let fg = Tensor::from_vec(flat, (1, k, d), &self.device)?;
         let bg = Tensor::from_vec(bg_latent.to_vec(), (1, d), &self.device)?;
         Ok(PreparedSlots {
-            fields: self.model.prepare(&fg, &bg)?,
+            fields: Some(self.model.prepare(&fg, &bg)?),
+            latents,
             num_fg: k,
         })
     }
@@ -417,6 +509,10 @@ impl Colf {
     /// Rays per chunk that keep one activation tensor under `CHUNK_FLOATS`.
     pub fn rays_per_chunk(&self, fields: usize) -> usize {
         let cfg = &self.model.cfg;
+        if let Some(v) = &cfg.volumetric {
+            let width = v.hidden + v.pos_dim() + cfg.slot_dim;
+            return (CHUNK_FLOATS / (fields * width * v.samples)).max(1);
+        }
         let width = cfg
             .lfn_hidden
             .max(cfg.head_hidden)
@@ -451,6 +547,13 @@ impl Colf {
             );
         }
         let r = origins.len();
+        if let Some(vol) = self.model.volumetric() {
+            return self.render_rays_volumetric(vol, prepared, slot_to_world, origins, dirs);
+        }
+        let fields = prepared
+            .fields
+            .as_ref()
+            .ok_or_else(|| anyhow!("slots were prepared for another kind of model"))?;
         let mut out = RayOutput {
             rgb: Vec::with_capacity(3 * r),
             weights: Vec::with_capacity(s * r),
@@ -469,7 +572,7 @@ impl Colf {
                 }],
                 &self.device,
             )?;
-            let dec = self.model.decode(&prepared.fields, &rays)?;
+            let dec = self.model.decode(fields, &rays)?;
             out.rgb.extend(dec.rgb.flatten_all()?.to_vec1::<f32>()?);
             out.weights
                 .extend(dec.weights.flatten_all()?.to_vec1::<f32>()?);
@@ -477,6 +580,58 @@ impl Colf {
             for (i, o) in ordering.iter().enumerate() {
                 out.ordering.push((*o as f64 + rays.base[i / s]) as f32);
             }
+        }
+        Ok(out)
+    }
+}
+
+impl Colf {
+    /// The volumetric reference render (candle ops, `samples` from the config), in chunks.
+    fn render_rays_volumetric(
+        &self,
+        vol: &volumetric::Volumetric,
+        prepared: &PreparedSlots,
+        slot_to_world: &[DMat4],
+        origins: &[DVec3],
+        dirs: &[DVec3],
+    ) -> Result<RayOutput> {
+        let s = 1 + prepared.num_fg;
+        let d = self.model.cfg.slot_dim;
+        for (k, m) in slot_to_world.iter().enumerate() {
+            let det = m.determinant();
+            if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
+                bail!("slot {k}'s slot_to_world is not an invertible finite matrix");
+            }
+        }
+        for (i, (o, dir)) in origins.iter().zip(dirs).enumerate() {
+            if !o.is_finite() || !dir.is_finite() || dir.length_squared() < 1e-24 {
+                bail!("ray {i} has a non-finite origin or a zero/non-finite direction");
+            }
+        }
+        let flat: Vec<f32> = prepared.latents.iter().flatten().copied().collect();
+        let latents = Tensor::from_vec(flat, (s, d), &self.device)?;
+        let r = origins.len();
+        let mut out = RayOutput {
+            rgb: Vec::with_capacity(3 * r),
+            weights: Vec::with_capacity(s * r),
+            ordering: Vec::with_capacity(s * r),
+            fields: s,
+        };
+        let chunk = self.rays_per_chunk(s);
+        for start in (0..r).step_by(chunk) {
+            let end = (start + chunk).min(r);
+            let v = vol.render_reference(
+                &latents,
+                slot_to_world,
+                &origins[start..end],
+                &dirs[start..end],
+                vol.cfg.samples,
+            )?;
+            out.rgb.extend(v.rgb.flatten_all()?.to_vec1::<f32>()?);
+            out.weights
+                .extend(v.weights.flatten_all()?.to_vec1::<f32>()?);
+            out.ordering
+                .extend(v.depth.flatten_all()?.to_vec1::<f32>()?);
         }
         Ok(out)
     }

@@ -1,0 +1,215 @@
+//! Adaptive rendering (`colf-render --adaptive [EPS]`): evaluate a slot's light field only where
+//! that slot can be seen.
+//!
+//! 1. Render the compositor weights of all slots at reduced resolution: one ray through the
+//!    centre of every `factor`×`factor` block of pixels (`factor` = [`COARSE_FACTOR`]).
+//! 2. Dilate each slot's coarse weight map by taking the maximum over the (2r + 1)² neighbouring
+//!    blocks (r = [`DILATE_BLOCKS`]), so an object edge that falls between coarse samples is
+//!    still covered.
+//! 3. Render the full-resolution frame, evaluating slot k at a pixel only where its dilated
+//!    coarse weight exceeds ε; elsewhere the slot is left out of that pixel's composition
+//!    (weight 0, ordering +∞). The background is always evaluated, so every pixel has at least
+//!    one field and its weights still sum to 1.
+//!
+//! Where a slot is evaluated, the result is exact for the fields evaluated there; the error is
+//! the weight (< ε, up to the coarse sampling) of the slots left out. ε = 0 evaluates every slot
+//! wherever its coarse weight is not exactly 0, which is nearly everywhere; the recommended ε
+//! and the measured speed/PSNR trade are in `docs/tradeoff.md`.
+
+use crate::camera::Frame;
+use crate::model::RayOutput;
+use crate::render_fast::FastRenderer;
+use anyhow::{bail, Result};
+use glam::DVec3;
+
+/// Side of the pixel block one coarse ray stands for.
+pub const COARSE_FACTOR: u32 = 4;
+/// Dilation radius of the coarse weight maps, in blocks.
+pub const DILATE_BLOCKS: i64 = 1;
+/// The ε `--adaptive` uses without a value (chosen from the measurements in docs/tradeoff.md).
+pub const RECOMMENDED_EPS: f32 = 0.01;
+
+/// What an adaptive render did, for logs and the trade-off measurements.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdaptiveStats {
+    /// Coarse rays rendered.
+    pub coarse_rays: usize,
+    /// Foreground (slot, pixel) evaluations done at full resolution, and possible.
+    pub evaluated: usize,
+    pub possible: usize,
+}
+
+/// The ray × field mask of the full-resolution pass (see the module documentation).
+pub fn active_mask(
+    renderer: &FastRenderer,
+    frame: &Frame,
+    eps: f32,
+) -> Result<(Vec<bool>, AdaptiveStats)> {
+    if !(eps.is_finite() && eps >= 0.0) {
+        bail!("--adaptive: ε must be a finite number ≥ 0, not {eps}");
+    }
+    let s = renderer.fields();
+    let (w, h) = (frame.intrinsics.w as usize, frame.intrinsics.h as usize);
+    let f = COARSE_FACTOR as usize;
+    let (cw, ch) = (w.div_ceil(f), h.div_ceil(f));
+    let mut origins = Vec::with_capacity(cw * ch);
+    let mut dirs = Vec::with_capacity(cw * ch);
+    for j in 0..ch {
+        for i in 0..cw {
+            // The centre of the block, clamped into the image for partial blocks.
+            let u = ((i * f) as f64 + 0.5 * f as f64).min(w as f64 - 0.5);
+            let v = ((j * f) as f64 + 0.5 * f as f64).min(h as f64 - 0.5);
+            let ray = frame.ray_at(u, v);
+            origins.push(ray.origin);
+            dirs.push(ray.direction);
+        }
+    }
+    let coarse: RayOutput = renderer.render(&origins, &dirs, None, None)?;
+    // Dilated maxima per block and field.
+    let mut dilated = vec![0f32; cw * ch * s];
+    for j in 0..ch as i64 {
+        for i in 0..cw as i64 {
+            let at = (j as usize * cw + i as usize) * s;
+            for dj in -DILATE_BLOCKS..=DILATE_BLOCKS {
+                for di in -DILATE_BLOCKS..=DILATE_BLOCKS {
+                    let (x, y) = (i + di, j + dj);
+                    if x < 0 || y < 0 || x >= cw as i64 || y >= ch as i64 {
+                        continue;
+                    }
+                    let from = (y as usize * cw + x as usize) * s;
+                    for k in 0..s {
+                        dilated[at + k] = dilated[at + k].max(coarse.weights[from + k]);
+                    }
+                }
+            }
+        }
+    }
+    let mut mask = vec![false; w * h * s];
+    let mut evaluated = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let block = ((y / f) * cw + x / f) * s;
+            let at = (y * w + x) * s;
+            mask[at] = true;
+            for k in 1..s {
+                let on = dilated[block + k] > eps;
+                mask[at + k] = on;
+                evaluated += on as usize;
+            }
+        }
+    }
+    Ok((
+        mask,
+        AdaptiveStats {
+            coarse_rays: cw * ch,
+            evaluated,
+            possible: w * h * (s - 1),
+        },
+    ))
+}
+
+/// Renders every pixel of `frame` adaptively with threshold `eps`.
+pub fn render_adaptive(
+    renderer: &FastRenderer,
+    frame: &Frame,
+    origins: &[DVec3],
+    dirs: &[DVec3],
+    eps: f32,
+) -> Result<(RayOutput, AdaptiveStats)> {
+    if renderer.is_volumetric() {
+        bail!("--adaptive applies to light-field models only (this model is volumetric)");
+    }
+    let (mask, stats) = active_mask(renderer, frame, eps)?;
+    Ok((renderer.render(origins, dirs, None, Some(&mask))?, stats))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{Colf, Config};
+    use glam::DMat4;
+
+    fn setup() -> (Colf, FastRenderer, Frame) {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let latents: Vec<Vec<f32>> = (0..3)
+            .map(|k| {
+                (0..64)
+                    .map(|i| ((i * 7 + k * 13) % 11) as f32 / 5.0 - 1.0)
+                    .collect()
+            })
+            .collect();
+        let bg: Vec<f32> = (0..64).map(|i| (i % 5) as f32 / 4.0 - 0.5).collect();
+        let prepared = model.prepare(&latents, &bg).unwrap();
+        let frames: Vec<DMat4> = (0..3)
+            .map(|k| DMat4::from_translation(DVec3::new(k as f64, -1.0, 0.0)))
+            .collect();
+        let renderer = FastRenderer::new(&model, &prepared, &frames).unwrap();
+        let frame = Frame {
+            file_path: None,
+            intrinsics: crate::camera::Intrinsics::from_fov(18, 13, 49.13),
+            camera_to_world: crate::camera::look_at(
+                DVec3::new(9.0, -8.0, 8.0),
+                DVec3::ZERO,
+                DVec3::Z,
+            )
+            .unwrap(),
+        };
+        (model, renderer, frame)
+    }
+
+    fn rays(frame: &Frame) -> (Vec<DVec3>, Vec<DVec3>) {
+        frame.rays().iter().map(|r| (r.origin, r.direction)).unzip()
+    }
+
+    #[test]
+    fn eps_above_every_weight_keeps_only_the_background_and_zero_eps_is_exact_where_weights_are_positive(
+    ) {
+        let (_m, r, frame) = setup();
+        let (o, d) = rays(&frame);
+        let exact = r.render(&o, &d, None, None).unwrap();
+        // Partial blocks (18×13 is not a multiple of 4) are covered.
+        let (out, stats) = render_adaptive(&r, &frame, &o, &d, 0.0).unwrap();
+        assert_eq!(stats.coarse_rays, 5 * 4);
+        assert_eq!(stats.evaluated, stats.possible);
+        assert_eq!(out, exact);
+        let (out, stats) = render_adaptive(&r, &frame, &o, &d, 1.0).unwrap();
+        assert_eq!(stats.evaluated, 0);
+        for px in out.weights.chunks_exact(4) {
+            assert_eq!(px, &[1.0, 0.0, 0.0, 0.0]);
+        }
+        assert!(render_adaptive(&r, &frame, &o, &d, f32::NAN).is_err());
+    }
+
+    #[test]
+    fn a_slot_is_evaluated_exactly_where_its_dilated_coarse_weight_exceeds_eps() {
+        let (_m, r, frame) = setup();
+        let (mask, stats) = active_mask(&r, &frame, 0.3).unwrap();
+        assert_eq!(
+            mask.iter().filter(|v| **v).count(),
+            stats.evaluated + 18 * 13
+        );
+        // Recompute one pixel's decision by hand.
+        let coarse_frame_rays: Vec<_> = (0..4)
+            .flat_map(|j| (0..5).map(move |i| (i, j)))
+            .map(|(i, j): (u32, u32)| {
+                frame.ray_at(
+                    ((i * 4) as f64 + 2.0).min(17.5),
+                    ((j * 4) as f64 + 2.0).min(12.5),
+                )
+            })
+            .collect();
+        let o: Vec<DVec3> = coarse_frame_rays.iter().map(|r| r.origin).collect();
+        let d: Vec<DVec3> = coarse_frame_rays.iter().map(|r| r.direction).collect();
+        let coarse = r.render(&o, &d, None, None).unwrap();
+        let (x, y) = (9usize, 6usize); // block (2, 1)
+        for k in 1..4 {
+            let mut best = 0f32;
+            for bj in 0..3 {
+                for bi in 1..4 {
+                    best = best.max(coarse.weights[(bj * 5 + bi) * 4 + k]);
+                }
+            }
+            assert_eq!(mask[(y * 18 + x) * 4 + k], best > 0.3, "slot {k}");
+        }
+    }
+}

@@ -1,0 +1,890 @@
+//! The inference-only renderer behind `colf-render`: the same weights and the same arithmetic
+//! as the candle path ([`Colf::render_rays`], which training uses), laid out for speed.
+//!
+//! Why a second path: rendering a frame is a few dozen small matrix products per slot, and in
+//! candle every layer allocates its activation tensor, every element-wise op (bias, ReLU,
+//! sigmoid, the compositor's dozen ops) is a pass over memory, and the heads and compositor see
+//! all rays of all slots at once, so the activations stream through main memory between ops. Here
+//! - rays are cut into chunks of [`LF_CHUNK`] rays (volumetric: ~[`VOL_POINTS`] sample points),
+//!   one chunk per rayon task, so each task's activations (a few hundred KiB) stay in L2;
+//! - within a chunk, each slot's whole network runs back to back: one `gemm` call per layer
+//!   (single-threaded: the parallelism is across chunks), with bias and ReLU in one pass over
+//!   the in-cache output; the colour and ordering heads' first layers share one product, their
+//!   output layers one block-diagonal product;
+//! - the compositor runs per ray on the slots' values, with its MLP as products per slot;
+//! - the volumetric decoder's latent columns are folded into a per-slot bias once (see
+//!   `model/volumetric.rs`), and its skip connection reads [h, γ(p)] from one buffer.
+//!
+//! Each chunk is computed by one thread from its own inputs only, so results do not depend on
+//! the number of threads or on scheduling: the same inputs give the same bytes. Agreement with
+//! the candle path is tested to 1e-4 (`tests` below and `tests/render_fast.rs`).
+//!
+//! Adaptive rendering passes an `active` mask (ray × field): a field is evaluated only on the
+//! rays where it is active and takes no part in those rays' composition elsewhere (weight 0,
+//! ordering +∞). The background (field 0) must always be active.
+
+#![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
+
+use crate::model::rays::plucker_in_frame;
+use crate::model::{Colf, PreparedSlots, RayOutput};
+use anyhow::{anyhow, bail, Context, Result};
+use candle_core::Tensor;
+use glam::{DMat4, DVec3};
+use rayon::prelude::*;
+
+/// Rays per light-field task.
+pub const LF_CHUNK: usize = 256;
+/// Sample points per volumetric task (rays per task = this / samples, at least 1).
+pub const VOL_POINTS: usize = 1024;
+
+/// One dense layer on the host: y = act(x·W + b), W [in, out] row-major.
+#[derive(Clone, Debug)]
+pub struct HostDense {
+    pub input: usize,
+    pub output: usize,
+    pub w: Vec<f32>,
+    pub b: Vec<f32>,
+}
+
+impl HostDense {
+    /// From a candle `Linear` layout: weight [out, in], bias [out] (None: zeros).
+    pub fn from_linear(weight: &Tensor, bias: Option<&Tensor>) -> Result<HostDense> {
+        let (out, inp) = weight.dims2()?;
+        let w = weight.t()?.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+        let b = match bias {
+            Some(b) => b.flatten_all()?.to_vec1::<f32>()?,
+            None => vec![0.0; out],
+        };
+        if b.len() != out {
+            bail!("bias of {} values for {out} outputs", b.len());
+        }
+        Ok(HostDense {
+            input: inp,
+            output: out,
+            w,
+            b,
+        })
+    }
+
+    /// `rows` rows of x (row stride `x_rs`, the first `input` columns) → y (row stride `y_rs`,
+    /// the first `output` columns).
+    pub fn run(&self, x: &[f32], x_rs: usize, rows: usize, y: &mut [f32], y_rs: usize, relu: bool) {
+        self.run_bias(x, x_rs, rows, y, y_rs, relu, &self.b);
+    }
+
+    /// As [`HostDense::run`] with another bias vector (the volumetric per-slot biases).
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_bias(
+        &self,
+        x: &[f32],
+        x_rs: usize,
+        rows: usize,
+        y: &mut [f32],
+        y_rs: usize,
+        relu: bool,
+        bias: &[f32],
+    ) {
+        if rows == 0 {
+            return;
+        }
+        let (k, n) = (self.input, self.output);
+        assert!(x_rs >= k && y_rs >= n && bias.len() == n);
+        assert!(x.len() >= (rows - 1) * x_rs + k, "dense: x too short");
+        assert!(y.len() >= (rows - 1) * y_rs + n, "dense: y too short");
+        // SAFETY: the asserts above keep every read of x (rows × k with row stride x_rs), of W
+        // ([k, n] row-major, built that way) and every write of y (rows × n, row stride y_rs)
+        // inside their slices; y is written before it is read (read_dst = false).
+        unsafe {
+            gemm::gemm(
+                rows,
+                n,
+                k,
+                y.as_mut_ptr(),
+                1,
+                y_rs as isize,
+                false,
+                x.as_ptr(),
+                1,
+                x_rs as isize,
+                self.w.as_ptr(),
+                1,
+                n as isize,
+                0.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm::Parallelism::None,
+            );
+        }
+        for row in y.chunks_mut(y_rs).take(rows) {
+            for (v, b) in row[..n].iter_mut().zip(bias) {
+                let t = *v + b;
+                *v = if relu { t.max(0.0) } else { t };
+            }
+        }
+    }
+}
+
+fn param<'a>(colf: &'a Colf, name: &str) -> Result<&'a Tensor> {
+    colf.parameters()
+        .get(name)
+        .ok_or_else(|| anyhow!("the model has no tensor `{name}`"))
+}
+
+fn linear(colf: &Colf, prefix: &str, bias: bool) -> Result<HostDense> {
+    let w = param(colf, &format!("{prefix}.weight"))?;
+    let b = if bias {
+        Some(param(colf, &format!("{prefix}.bias"))?)
+    } else {
+        None
+    };
+    HostDense::from_linear(w, b).with_context(|| prefix.to_string())
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Light-field weights on the host.
+struct LightFieldHost {
+    /// Per field (background first), its MLP layers.
+    fields: Vec<Vec<HostDense>>,
+    /// Heads: first layer of both heads side by side (F → 2H, or F → 4 without hidden layers).
+    head_first: HostDense,
+    /// Hidden layers 1 … h − 1: (colour, ordering), each H → H.
+    head_mid: Vec<(HostDense, HostDense)>,
+    /// Output layer, block-diagonal 2H → 4 (colour 3, ordering 1); None without hidden layers.
+    head_out: Option<HostDense>,
+    head_hidden: usize,
+    /// Compositor V, layers in order (the last without a bias: zeros).
+    comp: Vec<HostDense>,
+    gap_slope: f32,
+    scene_scale: f64,
+    freqs: usize,
+    in_dim: usize,
+}
+
+impl LightFieldHost {
+    fn new(colf: &Colf, prepared: &PreparedSlots) -> Result<LightFieldHost> {
+        let cfg = colf.config();
+        let fields_w = prepared
+            .light_fields()
+            .ok_or_else(|| anyhow!("slots were not prepared for a light-field model"))?;
+        let s = 1 + prepared.num_fg();
+        let mut fields: Vec<Vec<HostDense>> = (0..s).map(|_| Vec::new()).collect();
+        for layer in &fields_w.layers {
+            let (ls, inp, out) = layer.weight.dims3()?;
+            if ls != s {
+                bail!("{ls} prepared light fields for {s} slots");
+            }
+            let w = layer.weight.flatten_all()?.to_vec1::<f32>()?;
+            let b = layer.bias.flatten_all()?.to_vec1::<f32>()?;
+            for (i, f) in fields.iter_mut().enumerate() {
+                f.push(HostDense {
+                    input: inp,
+                    output: out,
+                    w: w[i * inp * out..(i + 1) * inp * out].to_vec(),
+                    b: b[i * out..(i + 1) * out].to_vec(),
+                });
+            }
+        }
+        let h = cfg.head_hidden_layers;
+        let color: Vec<HostDense> = (0..=h)
+            .map(|i| linear(colf, &format!("heads.color.layers.{i}"), true))
+            .collect::<Result<_>>()?;
+        let ordering: Vec<HostDense> = (0..=h)
+            .map(|i| linear(colf, &format!("heads.ordering.layers.{i}"), true))
+            .collect::<Result<_>>()?;
+        let side_by_side = |a: &HostDense, b: &HostDense| -> HostDense {
+            let (inp, oa, ob) = (a.input, a.output, b.output);
+            let mut w = vec![0f32; inp * (oa + ob)];
+            for r in 0..inp {
+                w[r * (oa + ob)..r * (oa + ob) + oa].copy_from_slice(&a.w[r * oa..(r + 1) * oa]);
+                w[r * (oa + ob) + oa..(r + 1) * (oa + ob)]
+                    .copy_from_slice(&b.w[r * ob..(r + 1) * ob]);
+            }
+            let mut bias = a.b.clone();
+            bias.extend(&b.b);
+            HostDense {
+                input: inp,
+                output: oa + ob,
+                w,
+                b: bias,
+            }
+        };
+        let head_first = side_by_side(&color[0], &ordering[0]);
+        let head_mid = (1..h)
+            .map(|i| (color[i].clone(), ordering[i].clone()))
+            .collect();
+        let head_out = if h == 0 {
+            None
+        } else {
+            let (c, o) = (&color[h], &ordering[h]);
+            let hh = c.input;
+            let mut w = vec![0f32; 2 * hh * 4];
+            for r in 0..hh {
+                w[r * 4..r * 4 + 3].copy_from_slice(&c.w[r * 3..(r + 1) * 3]);
+                w[(hh + r) * 4 + 3] = o.w[r];
+            }
+            Some(HostDense {
+                input: 2 * hh,
+                output: 4,
+                w,
+                b: vec![c.b[0], c.b[1], c.b[2], o.b[0]],
+            })
+        };
+        let c = cfg.compositor_hidden_layers;
+        let comp = (0..=c)
+            .map(|i| linear(colf, &format!("compositor.v.layers.{i}"), i < c))
+            .collect::<Result<_>>()?;
+        let slope = param(colf, "compositor.gap_log_slope")?
+            .exp()?
+            .flatten_all()?
+            .to_vec1::<f32>()?[0];
+        Ok(LightFieldHost {
+            fields,
+            head_first,
+            head_mid,
+            head_out,
+            head_hidden: cfg.head_hidden,
+            comp,
+            gap_slope: slope,
+            scene_scale: cfg.scene_scale,
+            freqs: cfg.ray_fourier_freqs,
+            in_dim: cfg.ray_input_dim(),
+        })
+    }
+
+    fn max_width(&self) -> usize {
+        let mut w = self.in_dim.max(2 * self.head_hidden).max(4);
+        for f in &self.fields {
+            for l in f {
+                w = w.max(l.output);
+            }
+        }
+        for l in &self.comp {
+            w = w.max(l.output).max(l.input);
+        }
+        w
+    }
+}
+
+/// Per-task buffers, reused across the chunks a thread renders.
+#[derive(Default)]
+struct Scratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+    c: Vec<f32>,
+    rows: Vec<usize>,
+    colors: Vec<f32>,
+    order: Vec<f32>,
+    world: Vec<f32>,
+    score: Vec<f32>,
+    shift: Vec<f64>,
+    base: Vec<f64>,
+    sigma: Vec<f32>,
+}
+
+fn grow(v: &mut Vec<f32>, n: usize) {
+    if v.len() < n {
+        v.resize(n, 0.0);
+    }
+}
+
+/// A scene ready for the fast renderer: host copies of the weights, made once.
+pub struct FastRenderer {
+    kind: Kind,
+    /// Frame inverses (background: identity) and translations, for the 1 + K fields.
+    inverses: Vec<DMat4>,
+    translations: Vec<DVec3>,
+}
+
+enum Kind {
+    LightField(Box<LightFieldHost>),
+    Volumetric(Box<VolumetricHost>),
+}
+
+impl FastRenderer {
+    /// Host copies of `prepared`'s weights (and the model's shared ones); checks the frames.
+    pub fn new(colf: &Colf, prepared: &PreparedSlots, slot_to_world: &[DMat4]) -> Result<Self> {
+        if slot_to_world.len() != prepared.num_fg() {
+            bail!(
+                "{} slot frames for {} slots",
+                slot_to_world.len(),
+                prepared.num_fg()
+            );
+        }
+        let mut inverses = vec![DMat4::IDENTITY];
+        let mut translations = vec![DVec3::ZERO];
+        for (k, m) in slot_to_world.iter().enumerate() {
+            let det = m.determinant();
+            if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
+                bail!("slot {k}'s slot_to_world is not an invertible finite matrix");
+            }
+            inverses.push(m.inverse());
+            translations.push(m.w_axis.truncate());
+        }
+        let kind = if colf.model().volumetric().is_some() {
+            Kind::Volumetric(Box::new(VolumetricHost::new(colf, prepared)?))
+        } else {
+            Kind::LightField(Box::new(LightFieldHost::new(colf, prepared)?))
+        };
+        Ok(FastRenderer {
+            kind,
+            inverses,
+            translations,
+        })
+    }
+
+    /// Number of fields 1 + K.
+    pub fn fields(&self) -> usize {
+        self.inverses.len()
+    }
+
+    /// True for a volumetric model.
+    pub fn is_volumetric(&self) -> bool {
+        matches!(self.kind, Kind::Volumetric(_))
+    }
+
+    /// Renders world rays. `samples`: samples per ray of a volumetric model (None: its
+    /// config's); must be None for light fields. `active`: optional ray × field mask (light
+    /// fields only; the background column must be all true).
+    pub fn render(
+        &self,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        samples: Option<usize>,
+        active: Option<&[bool]>,
+    ) -> Result<RayOutput> {
+        let s = self.fields();
+        let r = origins.len();
+        if dirs.len() != r {
+            bail!("{r} ray origins but {} directions", dirs.len());
+        }
+        for (i, (o, d)) in origins.iter().zip(dirs).enumerate() {
+            if !o.is_finite() || !d.is_finite() || d.length_squared() < 1e-24 {
+                bail!("ray {i} has a non-finite origin or a zero/non-finite direction");
+            }
+        }
+        if let Some(a) = active {
+            if a.len() != r * s {
+                bail!(
+                    "active mask of {} entries for {r} rays × {s} fields",
+                    a.len()
+                );
+            }
+            if a.chunks_exact(s).any(|row| !row[0]) {
+                bail!("the background must be evaluated on every ray");
+            }
+        }
+        let mut out = RayOutput {
+            rgb: vec![0.0; 3 * r],
+            weights: vec![0.0; s * r],
+            ordering: vec![0.0; s * r],
+            fields: s,
+        };
+        match &self.kind {
+            Kind::LightField(lf) => {
+                if samples.is_some() {
+                    bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray)");
+                }
+                out.rgb
+                    .par_chunks_mut(3 * LF_CHUNK)
+                    .zip(out.weights.par_chunks_mut(s * LF_CHUNK))
+                    .zip(out.ordering.par_chunks_mut(s * LF_CHUNK))
+                    .enumerate()
+                    .for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
+                        let start = ci * LF_CHUNK;
+                        let n = rgb.len() / 3;
+                        self.lf_chunk(
+                            lf,
+                            scratch,
+                            &origins[start..start + n],
+                            &dirs[start..start + n],
+                            active.map(|a| &a[start * s..(start + n) * s]),
+                            rgb,
+                            w,
+                            ord,
+                        );
+                    });
+            }
+            Kind::Volumetric(vol) => {
+                if active.is_some() {
+                    bail!("adaptive rendering applies to light-field models only");
+                }
+                let n_samples = samples.unwrap_or(vol.samples);
+                if n_samples == 0 || n_samples > 4096 {
+                    bail!("--samples must be in 1..=4096, not {n_samples}");
+                }
+                let chunk = (VOL_POINTS / n_samples).max(1);
+                out.rgb
+                    .par_chunks_mut(3 * chunk)
+                    .zip(out.weights.par_chunks_mut(s * chunk))
+                    .zip(out.ordering.par_chunks_mut(s * chunk))
+                    .enumerate()
+                    .for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
+                        let start = ci * chunk;
+                        let n = rgb.len() / 3;
+                        self.vol_chunk(
+                            vol,
+                            scratch,
+                            &origins[start..start + n],
+                            &dirs[start..start + n],
+                            n_samples,
+                            rgb,
+                            w,
+                            ord,
+                        );
+                    });
+            }
+        }
+        Ok(out)
+    }
+
+    /// One chunk of light-field rays; see the module documentation.
+    #[allow(clippy::too_many_arguments)]
+    fn lf_chunk(
+        &self,
+        lf: &LightFieldHost,
+        sc: &mut Scratch,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        active: Option<&[bool]>,
+        rgb: &mut [f32],
+        weights: &mut [f32],
+        ordering: &mut [f32],
+    ) {
+        let s = self.fields();
+        let n = origins.len();
+        let in_dim = lf.in_dim;
+        let width = lf.max_width();
+        grow(&mut sc.a, n * width);
+        grow(&mut sc.b, n * width);
+        grow(&mut sc.c, n * width);
+        grow(&mut sc.colors, n * s * 3);
+        grow(&mut sc.order, n * s);
+        grow(&mut sc.world, n * s);
+        grow(&mut sc.score, n * s);
+        sc.shift.resize(n * s, 0.0);
+        sc.base.resize(n, 0.0);
+        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
+        // Ordering shifts (f64), relative to the per-ray smallest one, as `RayBatch`.
+        for ri in 0..n {
+            let o = origins[ri];
+            let d = dirs[ri].normalize();
+            let mut lo = f64::INFINITY;
+            for si in 0..s {
+                let v = (self.translations[si] - o).dot(d);
+                sc.shift[ri * s + si] = v;
+                lo = lo.min(v);
+            }
+            sc.base[ri] = lo;
+            for si in 0..s {
+                sc.shift[ri * s + si] -= lo;
+            }
+        }
+        let h2 = lf.head_first.output;
+        for si in 0..s {
+            sc.rows.clear();
+            sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
+            let m = sc.rows.len();
+            if m == 0 {
+                continue;
+            }
+            // Ray coordinates in this field's frame.
+            let inv = &self.inverses[si];
+            for (j, &ri) in sc.rows.iter().enumerate() {
+                let p = plucker_in_frame(inv, origins[ri], dirs[ri], lf.scene_scale);
+                let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
+                for (c, v) in p.iter().enumerate() {
+                    out[c] = *v as f32;
+                    if lf.freqs == 0 {
+                        continue;
+                    }
+                    let (mut sin, mut cos) = (std::f64::consts::PI * v).sin_cos();
+                    for f in 0..lf.freqs {
+                        out[6 + 12 * f + c] = sin as f32;
+                        out[12 + 12 * f + c] = cos as f32;
+                        (sin, cos) = (2.0 * sin * cos, 1.0 - 2.0 * sin * sin);
+                    }
+                }
+            }
+            // The light field: ReLU layers, linear feature layer.
+            let layers = &lf.fields[si];
+            let mut x_w = in_dim;
+            for (li, layer) in layers.iter().enumerate() {
+                let relu = li + 1 < layers.len();
+                layer.run(&sc.a, x_w, m, &mut sc.b, layer.output, relu);
+                std::mem::swap(&mut sc.a, &mut sc.b);
+                x_w = layer.output;
+            }
+            // Heads (features in a).
+            lf.head_first
+                .run(&sc.a, x_w, m, &mut sc.b, h2, lf.head_out.is_some());
+            std::mem::swap(&mut sc.a, &mut sc.b);
+            for (c, o) in &lf.head_mid {
+                let hh = c.input;
+                c.run(&sc.a, h2, m, &mut sc.b, h2, true);
+                o.run(&sc.a[hh..], h2, m, &mut sc.b[hh..], h2, true);
+                std::mem::swap(&mut sc.a, &mut sc.b);
+            }
+            if let Some(out) = &lf.head_out {
+                out.run(&sc.a, h2, m, &mut sc.b, 4, false);
+                std::mem::swap(&mut sc.a, &mut sc.b);
+            }
+            for (j, &ri) in sc.rows.iter().enumerate() {
+                let v = &sc.a[j * 4..j * 4 + 4];
+                let at = ri * s + si;
+                for c in 0..3 {
+                    sc.colors[at * 3 + c] = sigmoid(v[c]);
+                }
+                sc.order[at] = v[3];
+            }
+        }
+        // Compositor: world-comparable orderings, the front one, V's inputs.
+        let scale = lf.scene_scale as f32;
+        for ri in 0..n {
+            for si in 0..s {
+                let at = ri * s + si;
+                sc.world[at] = if is_active(ri, si) {
+                    sc.order[at] * scale + sc.shift[at] as f32
+                } else {
+                    f32::INFINITY
+                };
+            }
+        }
+        for si in 0..s {
+            sc.rows.clear();
+            sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
+            let m = sc.rows.len();
+            if m == 0 {
+                continue;
+            }
+            for (j, &ri) in sc.rows.iter().enumerate() {
+                let row = &sc.world[ri * s..(ri + 1) * s];
+                let front = row.iter().copied().fold(f32::INFINITY, f32::min);
+                let gap = (row[si] - front) / scale;
+                let squashed = gap / (gap * gap + 1.0).sqrt();
+                sc.c[j * 2] = sc.order[ri * s + si];
+                sc.c[j * 2 + 1] = -squashed;
+                sc.score[ri * s + si] = -gap * lf.gap_slope;
+            }
+            let mut x_w = 2;
+            let last = lf.comp.len() - 1;
+            let (mut x, mut y) = (std::mem::take(&mut sc.c), std::mem::take(&mut sc.b));
+            for (li, layer) in lf.comp.iter().enumerate() {
+                layer.run(&x, x_w, m, &mut y, layer.output, li < last);
+                std::mem::swap(&mut x, &mut y);
+                x_w = layer.output;
+            }
+            for (j, &ri) in sc.rows.iter().enumerate() {
+                // learned − prior, as the candle compositor.
+                let at = ri * s + si;
+                sc.score[at] += x[j];
+            }
+            // Put the buffers back (both are scratch of the same size).
+            sc.c = y;
+            sc.b = x;
+        }
+        // Softmax over the active fields, colour, outputs.
+        for ri in 0..n {
+            let mut max = f32::NEG_INFINITY;
+            for si in 0..s {
+                if is_active(ri, si) {
+                    max = max.max(sc.score[ri * s + si]);
+                }
+            }
+            let mut sum = 0f32;
+            for si in 0..s {
+                let e = if is_active(ri, si) {
+                    (sc.score[ri * s + si] - max).exp()
+                } else {
+                    0.0
+                };
+                weights[ri * s + si] = e;
+                sum += e;
+            }
+            let mut col = [0f32; 3];
+            for si in 0..s {
+                let w = weights[ri * s + si] / sum;
+                weights[ri * s + si] = w;
+                for c in 0..3 {
+                    col[c] += w * sc.colors[(ri * s + si) * 3 + c];
+                }
+                ordering[ri * s + si] = if is_active(ri, si) {
+                    (sc.world[ri * s + si] as f64 + sc.base[ri]) as f32
+                } else {
+                    f32::INFINITY
+                };
+            }
+            rgb[ri * 3..ri * 3 + 3].copy_from_slice(&col);
+        }
+    }
+
+    /// One chunk of volumetric rays; see `model/volumetric.rs`.
+    #[allow(clippy::too_many_arguments)]
+    fn vol_chunk(
+        &self,
+        vol: &VolumetricHost,
+        sc: &mut Scratch,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        n_samples: usize,
+        rgb: &mut [f32],
+        weights: &mut [f32],
+        ordering: &mut [f32],
+    ) {
+        let s = self.fields();
+        let n = origins.len();
+        let m = n * n_samples;
+        let (w, e) = (vol.hidden, vol.pos_dim);
+        let he = w + e;
+        let heads = vol.bg.head.output; // 1 + colour hidden
+        let wide = he.max(heads).max(w);
+        grow(&mut sc.a, m * wide);
+        grow(&mut sc.b, m * wide);
+        grow(&mut sc.c, m * he);
+        grow(&mut sc.sigma, s * m);
+        grow(&mut sc.colors, s * m * 3);
+        let delta = (vol.far - vol.near) / n_samples as f64;
+        let depths: Vec<f64> = (0..n_samples)
+            .map(|i| vol.near + (i as f64 + 0.5) * delta)
+            .collect();
+        for si in 0..s {
+            let (net, biases) = if si == 0 {
+                (&vol.bg, &vol.slot_bias[0])
+            } else {
+                (&vol.fg, &vol.slot_bias[si])
+            };
+            // γ(p) into columns W … W + E of c (the skip layer's [h, γ(p)]) and into a.
+            let inv = &self.inverses[si];
+            for ri in 0..n {
+                let d = dirs[ri].normalize();
+                for (k, t) in depths.iter().enumerate() {
+                    let p = inv.transform_point3(origins[ri] + *t * d) / vol.scene_scale;
+                    let row = ri * n_samples + k;
+                    crate::model::volumetric::encode_point(
+                        [p.x, p.y, p.z],
+                        vol.pos_freqs,
+                        &mut sc.c[row * he + w..(row + 1) * he],
+                    );
+                    sc.a[row * e..(row + 1) * e]
+                        .copy_from_slice(&sc.c[row * he + w..(row + 1) * he]);
+                }
+            }
+            // Layers before the skip; the last writes into c's first W columns.
+            let before = vol.before;
+            let mut x_w = e;
+            for li in 0..before {
+                let layer = &net.layers[li];
+                let bias = if li == 0 { &biases.0 } else { &layer.b };
+                if li + 1 == before {
+                    layer.run_bias(&sc.a, x_w, m, &mut sc.c, he, true, bias);
+                } else {
+                    layer.run_bias(&sc.a, x_w, m, &mut sc.b, w, true, bias);
+                    std::mem::swap(&mut sc.a, &mut sc.b);
+                }
+                x_w = w;
+            }
+            // The skip layer on [h, γ(p)] (z folded into its bias), then the rest.
+            net.layers[before].run_bias(&sc.c, he, m, &mut sc.a, w, true, &biases.1);
+            for layer in &net.layers[before + 1..] {
+                layer.run(&sc.a, w, m, &mut sc.b, w, true);
+                std::mem::swap(&mut sc.a, &mut sc.b);
+            }
+            // Density and colour hidden in one product (both ReLU), then the colour output.
+            net.head.run(&sc.a, w, m, &mut sc.b, heads, true);
+            net.color_out.run(&sc.b[1..], heads, m, &mut sc.a, 3, false);
+            for i in 0..m {
+                sc.sigma[si * m + i] = sc.b[i * heads];
+                for c in 0..3 {
+                    sc.colors[(si * m + i) * 3 + c] = sigmoid(sc.a[i * 3 + c]);
+                }
+            }
+        }
+        // Density-weighted slots, alpha compositing along each ray.
+        for ri in 0..n {
+            let mut optical = 0f64;
+            let mut col = [0f64; 3];
+            let mut wsum = 0f64;
+            let wrow = &mut weights[ri * s..(ri + 1) * s];
+            let orow = &mut ordering[ri * s..(ri + 1) * s];
+            wrow.fill(0.0);
+            orow.fill(0.0);
+            for (k, t) in depths.iter().enumerate() {
+                let i = ri * n_samples + k;
+                let total: f32 = (0..s).map(|si| sc.sigma[si * m + i]).sum();
+                let total = total as f64;
+                let alpha = 1.0 - (-total * delta).exp();
+                let trans = (-optical).exp();
+                optical += total * delta;
+                let wi = trans * alpha;
+                wsum += wi;
+                let inv_total = 1.0 / (total + 1e-10);
+                for si in 0..s {
+                    let share = sc.sigma[si * m + i] as f64 * inv_total;
+                    if share == 0.0 {
+                        continue;
+                    }
+                    let ws = wi * share;
+                    wrow[si] += ws as f32;
+                    orow[si] += (ws * t) as f32;
+                    for c in 0..3 {
+                        col[c] += ws * sc.colors[(si * m + i) * 3 + c] as f64;
+                    }
+                }
+            }
+            for si in 0..s {
+                orow[si] = if wrow[si] > 0.0 {
+                    orow[si] / wrow[si]
+                } else {
+                    vol.far as f32
+                };
+            }
+            wrow[0] += (1.0 - wsum) as f32;
+            for c in 0..3 {
+                rgb[ri * 3 + c] = col[c] as f32;
+            }
+        }
+    }
+}
+
+/// One volumetric network on the host: layer 0's and the skip layer's weights restricted to
+/// their γ(p) (and h) columns; the latent columns are folded into per-slot biases.
+struct VolNetHost {
+    layers: Vec<HostDense>,
+    /// Density (column 0) and colour hidden (1 …) side by side.
+    head: HostDense,
+    color_out: HostDense,
+    /// Latent columns of layer 0 and of the skip layer, [D, W] row-major.
+    z0: HostDense,
+    z_skip: HostDense,
+}
+
+struct VolumetricHost {
+    bg: VolNetHost,
+    fg: VolNetHost,
+    /// Per field: (layer-0 bias, skip-layer bias) with W·z added.
+    slot_bias: Vec<(Vec<f32>, Vec<f32>)>,
+    hidden: usize,
+    pos_dim: usize,
+    pos_freqs: usize,
+    before: usize,
+    samples: usize,
+    near: f64,
+    far: f64,
+    scene_scale: f64,
+}
+
+impl VolNetHost {
+    fn new(colf: &Colf, prefix: &str, before: usize, e: usize) -> Result<VolNetHost> {
+        let cfg = colf.config();
+        let v = cfg.volumetric.as_ref().expect("volumetric config");
+        let n = v.layers_before_skip + v.layers_after_skip;
+        let mut layers = Vec::with_capacity(n);
+        let (mut z0, mut z_skip) = (None, None);
+        for i in 0..n {
+            let full = linear(colf, &format!("{prefix}.layers.{i}"), true)?;
+            if i == 0 || i == before {
+                // Rows of W [in, out]: (h,) γ(p), then z.
+                let keep = full.input - cfg.slot_dim;
+                let out = full.output;
+                let main = HostDense {
+                    input: keep,
+                    output: out,
+                    w: full.w[..keep * out].to_vec(),
+                    b: full.b.clone(),
+                };
+                let z = HostDense {
+                    input: cfg.slot_dim,
+                    output: out,
+                    w: full.w[keep * out..].to_vec(),
+                    b: full.b.clone(),
+                };
+                if i == 0 {
+                    z0 = Some(z);
+                } else {
+                    z_skip = Some(z);
+                }
+                layers.push(main);
+            } else {
+                layers.push(full);
+            }
+        }
+        let density = linear(colf, &format!("{prefix}.density"), true)?;
+        let color_hidden = linear(colf, &format!("{prefix}.color.layers.0"), true)?;
+        let color_out = linear(colf, &format!("{prefix}.color.layers.1"), true)?;
+        let (wd, ch) = (density.input, color_hidden.output);
+        let mut w = vec![0f32; wd * (1 + ch)];
+        for r in 0..wd {
+            w[r * (1 + ch)] = density.w[r];
+            w[r * (1 + ch) + 1..(r + 1) * (1 + ch)]
+                .copy_from_slice(&color_hidden.w[r * ch..(r + 1) * ch]);
+        }
+        let mut b = density.b.clone();
+        b.extend(&color_hidden.b);
+        let _ = e;
+        Ok(VolNetHost {
+            layers,
+            head: HostDense {
+                input: wd,
+                output: 1 + ch,
+                w,
+                b,
+            },
+            color_out,
+            z0: z0.expect("layer 0"),
+            z_skip: z_skip.expect("skip layer"),
+        })
+    }
+
+    /// (layer-0 bias, skip bias) for latent z: b + z·W_z.
+    fn slot_bias(&self, z: &[f32]) -> (Vec<f32>, Vec<f32>) {
+        let mut a = vec![0f32; self.z0.output];
+        let mut b = vec![0f32; self.z_skip.output];
+        let (na, nb) = (a.len(), b.len());
+        self.z0.run(z, z.len(), 1, &mut a, na, false);
+        self.z_skip.run(z, z.len(), 1, &mut b, nb, false);
+        (a, b)
+    }
+}
+
+impl VolumetricHost {
+    fn new(colf: &Colf, prepared: &PreparedSlots) -> Result<VolumetricHost> {
+        let cfg = colf.config();
+        let v = cfg
+            .volumetric
+            .as_ref()
+            .ok_or_else(|| anyhow!("not a volumetric model"))?;
+        let e = v.pos_dim();
+        let before = v.layers_before_skip;
+        let bg = VolNetHost::new(colf, "volumetric.bg", before, e)?;
+        let fg = VolNetHost::new(colf, "volumetric.fg", before, e)?;
+        let slot_bias = prepared
+            .latents()
+            .iter()
+            .enumerate()
+            .map(|(i, z)| {
+                if i == 0 {
+                    bg.slot_bias(z)
+                } else {
+                    fg.slot_bias(z)
+                }
+            })
+            .collect();
+        Ok(VolumetricHost {
+            bg,
+            fg,
+            slot_bias,
+            hidden: v.hidden,
+            pos_dim: e,
+            pos_freqs: v.pos_freqs,
+            before,
+            samples: v.samples,
+            near: v.near,
+            far: v.far,
+            scene_scale: cfg.scene_scale,
+        })
+    }
+}
