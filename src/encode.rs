@@ -1,10 +1,10 @@
 //! Encoding: one image → a codes file's content (slots in world frames, masses, sources).
 
+use crate::camera::{Frame, Intrinsics};
 use crate::codes::{Codes, Slot};
 use crate::image_io::RgbImage32;
 use crate::model::Colf;
 use anyhow::{bail, Result};
-use glam::DMat4;
 
 /// Largest slot count `colf-encode` accepts: slot attention runs with any K, but beyond this a
 /// typo (`--slots 100000`) would only burn memory.
@@ -19,10 +19,21 @@ pub struct EncodeOptions {
     pub prune_mass: Option<f64>,
     /// Seed of the slot noise.
     pub seed: u64,
-    /// Camera-to-world of the image's camera: every slot's frame (identity without a camera).
-    pub camera_to_world: DMat4,
+    /// The image's camera (None: the image's camera frame is the world, see [`default_camera`]).
+    /// Slots' frames are placed from it (`model::frames`).
+    pub camera: Option<Frame>,
     /// Name recorded in `sources` as `NAME#k` (k = the slot's index before pruning).
     pub source: String,
+}
+
+/// The camera assumed for an image given without one: at the world origin in OpenGL axes
+/// (so the image's camera frame is the world), with the clevr567 field of view (49.13°).
+pub fn default_camera(w: u32, h: u32) -> Frame {
+    Frame {
+        file_path: None,
+        intrinsics: Intrinsics::from_fov(w, h, 49.13),
+        camera_to_world: glam::DMat4::IDENTITY,
+    }
 }
 
 /// Encodes `image` with `model`.
@@ -45,15 +56,21 @@ pub fn encode_image(model: &Colf, image: &RgbImage32, opts: &EncodeOptions) -> R
         opts.num_slots,
         opts.seed,
     )?;
+    let camera = opts
+        .camera
+        .clone()
+        .unwrap_or_else(|| default_camera(image.w, image.h));
+    let frames = crate::model::frames::slot_frames(model.config(), &camera, &encoded.fg_centroid);
     let slots = encoded
         .fg_latents
         .into_iter()
         .zip(encoded.slot_mass)
+        .zip(frames)
         .enumerate()
-        .filter(|(_, (_, mass))| opts.prune_mass.is_none_or(|m| *mass as f64 >= m))
-        .map(|(k, (latent, mass))| Slot {
+        .filter(|(_, ((_, mass), _))| opts.prune_mass.is_none_or(|m| *mass as f64 >= m))
+        .map(|(k, ((latent, mass), slot_to_world))| Slot {
             latent,
-            slot_to_world: opts.camera_to_world,
+            slot_to_world,
             mass: mass.clamp(0.0, 1.0),
             source: format!("{}#{k}", opts.source),
         })

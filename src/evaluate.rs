@@ -88,7 +88,7 @@ pub fn encode_and_render(
             num_slots,
             prune_mass: None,
             seed,
-            camera_to_world: input.frame.camera_to_world,
+            camera: Some(input.frame.clone()),
             source: scene.name.clone(),
         },
     )?;

@@ -33,6 +33,8 @@ fn tiny() -> Config {
         scene_scale: 4.0,
         zero_background: false,
         hypernet_rms_norm: true,
+        attention_frames: false,
+        fg_locality: 0.0,
         volumetric: None,
     }
 }
@@ -198,7 +200,18 @@ fn render_check(colf: &Colf, frames: &[DMat4], eye: DVec3, n: usize) -> colf::mo
 
 #[test]
 fn renders_stay_finite_at_extremes() {
-    let colf = Colf::init(&Config::small(), 0).unwrap();
+    // The default config, and slot frames at attention centroids with a locality bound (whose
+    // ρ²/r grows to ~10⁸ for slots 10⁴ units away).
+    let mut local = Config::small();
+    local.attention_frames = true;
+    local.fg_locality = 2.0;
+    for cfg in [Config::small(), local] {
+        extremes_stay_finite(&cfg);
+    }
+}
+
+fn extremes_stay_finite(cfg: &Config) {
+    let colf = Colf::init(cfg, 0).unwrap();
     let eye = DVec3::new(8.0, -9.0, 8.0);
     render_check(&colf, &[], eye, 8); // background only
     render_check(&colf, &[DMat4::IDENTITY], eye, 8);

@@ -69,8 +69,8 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
         bail!("IMAGE and --camera cannot both be stdin");
     }
     let image = crate::image_io::read_rgb(&args.image)?;
-    let camera_to_world = match &args.camera {
-        None => glam::DMat4::IDENTITY,
+    let camera = match &args.camera {
+        None => None,
         Some(path) => {
             let cameras = Cameras::read(path)?;
             let Some(frame) = cameras.frames.get(args.frame) else {
@@ -81,7 +81,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
                     cameras.frames.len()
                 );
             };
-            frame.camera_to_world
+            Some(frame.clone())
         }
     };
     let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
@@ -96,7 +96,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
         num_slots: args.slots.unwrap_or(model.config().default_slots),
         prune_mass: args.prune,
         seed: args.seed,
-        camera_to_world,
+        camera,
         source,
     };
     let codes = encode_image(&model, &image, &opts)?;

@@ -4,6 +4,10 @@
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 /// Every size and knob of a COLF model. Unknown keys are refused when a checkpoint is read, so
 /// a file written by a newer colf with new knobs is reported instead of silently misread.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -63,6 +67,15 @@ pub struct Config {
     /// Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub hypernet_rms_norm: bool,
+    /// Place each foreground slot's frame where the slot attends in the image (see
+    /// `frames.rs`), instead of at the camera. Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub attention_frames: bool,
+    /// Locality bound of foreground slots, world units (0 = none): on a ray passing at
+    /// distance ρ from a slot's frame origin, the slot's ordering value is pushed back by ρ²/r
+    /// (see `rays.rs`). Absent in older files (= 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub fg_locality: f64,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -166,6 +179,8 @@ impl Config {
             scene_scale: 8.0,
             zero_background: false,
             hypernet_rms_norm: true,
+            attention_frames: false,
+            fg_locality: 0.0,
             volumetric: None,
         }
     }
@@ -197,6 +212,8 @@ impl Config {
             scene_scale: 8.0,
             zero_background: false,
             hypernet_rms_norm: true,
+            attention_frames: false,
+            fg_locality: 0.0,
             volumetric: None,
         }
     }
@@ -300,6 +317,9 @@ impl Config {
         }
         if self.encoder_size > 1024 || self.ray_fourier_freqs > 16 || self.lfn_hidden_layers > 16 {
             bail!("model config: a size is implausibly large");
+        }
+        if !(self.fg_locality.is_finite() && self.fg_locality >= 0.0) {
+            bail!("model config: `fg_locality` must be a non-negative number");
         }
         if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
             bail!("model config: `scene_scale` must be a positive number");

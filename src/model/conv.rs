@@ -51,17 +51,42 @@ fn out_size(n: usize, stride: usize) -> usize {
     (n - 1) / stride + 1
 }
 
+/// The contiguous f32 values of a custom op's input.
+fn contiguous_f32<'a>(storage: &'a CpuStorage, layout: &Layout, op: &str) -> Result<&'a [f32]> {
+    match (layout.contiguous_offsets(), storage) {
+        (Some((start, end)), CpuStorage::F32(data)) => Ok(&data[start..end]),
+        _ => candle_core::bail!("{op}: input must be contiguous f32"),
+    }
+}
+
+/// Calls `f(tap, pixel)` for each of the 9 taps (ky·3 + kx) of output position (oy, ox) that
+/// falls inside an h×w image (zero padding 1, `stride`), with the tap's pixel index y·w + x.
+fn for_each_tap(
+    (oy, ox): (usize, usize),
+    stride: usize,
+    (h, w): (usize, usize),
+    mut f: impl FnMut(usize, usize),
+) {
+    for ky in 0..3 {
+        let Some(iy) = (oy * stride + ky).checked_sub(1).filter(|&y| y < h) else {
+            continue;
+        };
+        for kx in 0..3 {
+            let Some(ix) = (ox * stride + kx).checked_sub(1).filter(|&x| x < w) else {
+                continue;
+            };
+            f(ky * 3 + kx, iy * w + ix);
+        }
+    }
+}
+
 impl CustomOp1 for Im2Col {
     fn name(&self) -> &'static str {
         "colf-im2col"
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (Some((start, end)), CpuStorage::F32(data)) = (layout.contiguous_offsets(), storage)
-        else {
-            candle_core::bail!("im2col: input must be contiguous f32");
-        };
-        let x = &data[start..end];
+        let x = contiguous_f32(storage, layout, "im2col")?;
         let &[b, h, w, c] = layout.dims() else {
             candle_core::bail!("im2col: input must be [B, H, W, C]");
         };
@@ -75,21 +100,10 @@ impl CustomOp1 for Im2Col {
                 let (bi, oy) = (line / ho, line % ho);
                 let image = &x[bi * h * w * c..(bi + 1) * h * w * c];
                 for ox in 0..wo {
-                    for ky in 0..3 {
-                        let iy = (oy * s + ky) as isize - 1;
-                        if iy < 0 || iy >= h as isize {
-                            continue;
-                        }
-                        for kx in 0..3 {
-                            let ix = (ox * s + kx) as isize - 1;
-                            if ix < 0 || ix >= w as isize {
-                                continue;
-                            }
-                            let src = (iy as usize * w + ix as usize) * c;
-                            let dst = ox * row + (ky * 3 + kx) * c;
-                            out[dst..dst + c].copy_from_slice(&image[src..src + c]);
-                        }
-                    }
+                    for_each_tap((oy, ox), s, (h, w), |tap, pixel| {
+                        let dst = ox * row + tap * c;
+                        out[dst..dst + c].copy_from_slice(&image[pixel * c..(pixel + 1) * c]);
+                    });
                 }
             });
         Ok((CpuStorage::F32(cols), Shape::from((b * ho * wo, row))))
@@ -116,11 +130,7 @@ impl CustomOp1 for Col2Im {
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (Some((start, end)), CpuStorage::F32(data)) = (layout.contiguous_offsets(), storage)
-        else {
-            candle_core::bail!("col2im: input must be contiguous f32");
-        };
-        let cols = &data[start..end];
+        let cols = contiguous_f32(storage, layout, "col2im")?;
         let (b, h, w, c) = self.input;
         let s = self.stride;
         let (ho, wo) = (out_size(h, s), out_size(w, s));
@@ -138,23 +148,12 @@ impl CustomOp1 for Col2Im {
                 for oy in 0..ho {
                     for ox in 0..wo {
                         let src_row = &cols[(oy * wo + ox) * row..(oy * wo + ox + 1) * row];
-                        for ky in 0..3 {
-                            let iy = (oy * s + ky) as isize - 1;
-                            if iy < 0 || iy >= h as isize {
-                                continue;
+                        for_each_tap((oy, ox), s, (h, w), |tap, pixel| {
+                            let src = &src_row[tap * c..(tap + 1) * c];
+                            for (d, v) in image[pixel * c..(pixel + 1) * c].iter_mut().zip(src) {
+                                *d += v;
                             }
-                            for kx in 0..3 {
-                                let ix = (ox * s + kx) as isize - 1;
-                                if ix < 0 || ix >= w as isize {
-                                    continue;
-                                }
-                                let dst = (iy as usize * w + ix as usize) * c;
-                                let src = &src_row[(ky * 3 + kx) * c..(ky * 3 + kx + 1) * c];
-                                for (d, v) in image[dst..dst + c].iter_mut().zip(src) {
-                                    *d += v;
-                                }
-                            }
-                        }
+                        });
                     }
                 }
             });
@@ -179,27 +178,9 @@ pub fn upsample2x(x: &Tensor, a: &Tensor) -> Result<Tensor> {
 
 #[cfg(test)]
 mod tests {
+    use super::super::fused::test_support::{max_diff, values};
     use super::*;
     use candle_core::{Device, Var};
-
-    fn values(n: usize, seed: u32) -> Vec<f32> {
-        (0..n)
-            .map(|i| (((i as u32).wrapping_mul(2654435761) ^ seed) % 2001) as f32 / 1000.0 - 1.0)
-            .collect()
-    }
-
-    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
-        (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap()
-    }
 
     /// Same values and gradients as candle's conv2d (NCHW) for strides 1 and 2, odd and even
     /// sizes.

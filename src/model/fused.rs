@@ -222,18 +222,18 @@ impl CustomOp2 for ReluMask {
     }
 }
 
+/// Helpers shared by the kernels' tests.
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use candle_core::{Device, Var};
+pub(crate) mod test_support {
+    use candle_core::Tensor;
 
-    fn values(n: usize, seed: u32) -> Vec<f32> {
+    pub fn values(n: usize, seed: u32) -> Vec<f32> {
         (0..n)
             .map(|i| (((i as u32).wrapping_mul(2654435761) ^ seed) % 2001) as f32 / 1000.0 - 1.0)
             .collect()
     }
 
-    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+    pub fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
         (a - b)
             .unwrap()
             .abs()
@@ -245,6 +245,13 @@ mod tests {
             .to_scalar::<f32>()
             .unwrap()
     }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::test_support::{max_diff, values};
+    use super::*;
+    use candle_core::{Device, Var};
 
     /// The fused op and the plain composition agree on values and on every gradient.
     fn compare(x_dims: &[usize], w_dims: &[usize], b_dims: &[usize], transpose_w: bool) {

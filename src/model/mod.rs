@@ -13,6 +13,7 @@ pub mod compositor;
 pub mod config;
 pub mod conv;
 pub mod encoder;
+pub mod frames;
 pub mod fused;
 pub mod heads;
 pub mod hypernet;
@@ -216,6 +217,8 @@ pub struct Encoded {
     pub bg_latent: Vec<f32>,
     /// Each foreground slot's share of the image's attention, in [0, 1].
     pub slot_mass: Vec<f32>,
+    /// Where each foreground slot attends: (x, y) in [0, 1] of the image (see `frames.rs`).
+    pub fg_centroid: Vec<[f32; 2]>,
 }
 
 /// Light fields ready to render: the hypernetworks' outputs for one background and K foreground
@@ -461,6 +464,13 @@ impl Colf {
             fg_latents,
             bg_latent: out.bg.squeeze(0)?.to_vec1::<f32>()?,
             slot_mass: out.fg_mass.squeeze(0)?.to_vec1::<f32>()?,
+            fg_centroid: out
+                .fg_centroid
+                .squeeze(0)?
+                .to_vec2::<f32>()?
+                .into_iter()
+                .map(|p| [p[0], p[1]])
+                .collect(),
         };
         let finite = enc
             .bg_latent

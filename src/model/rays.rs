@@ -16,7 +16,11 @@
 //!   ordering value can only be measured from that closest point; adding the shift turns it into
 //!   a distance from the ray origin, comparable between slots in different frames (see
 //!   `compositor.rs`). Computed in f64; per ray the smallest shift (`base`) is subtracted before
-//!   the values go to f32 so precision is kept when everything is 10⁴ units away.
+//!   the values go to f32 so precision is kept when everything is 10⁴ units away;
+//! - with `fg_locality` = r > 0, a foreground slot's shift also grows by ρ²/r, ρ = the ray's
+//!   distance from the slot's frame origin: a locality bound (uORF bounded its slots with a
+//!   box) that pushes a slot behind the others on rays far from where it lives, so no slot can
+//!   claim the whole image. It moves with the frame, so moved and merged slots keep it.
 
 use super::config::Config;
 use anyhow::{bail, Result};
@@ -104,6 +108,7 @@ impl RayBatch {
         let in_dim = cfg.ray_input_dim();
         let freqs = cfg.ray_fourier_freqs;
         let scale = cfg.scene_scale;
+        let locality = cfg.fg_locality;
         let mut coords = vec![0f32; b * s * r * in_dim];
         let mut shift = vec![0f32; b * r * s];
         let mut base = vec![0f64; b * r];
@@ -141,7 +146,20 @@ impl RayBatch {
             for ri in 0..r {
                 let o = scene.origins[ri];
                 let d = scene.dirs[ri].normalize();
-                let shifts: Vec<f64> = frames.iter().map(|(_, t)| (*t - o).dot(d)).collect();
+                let shifts: Vec<f64> = frames
+                    .iter()
+                    .enumerate()
+                    .map(|(si, (_, t))| {
+                        let along = (*t - o).dot(d);
+                        if si == 0 || locality == 0.0 {
+                            return along;
+                        }
+                        // Locality bound: ρ = the ray's distance from the slot's frame
+                        // origin; the slot is pushed back by ρ²/r.
+                        let rho_sq = ((*t - o) - along * d).length_squared();
+                        along + rho_sq / locality
+                    })
+                    .collect();
                 let lo = shifts.iter().copied().fold(f64::INFINITY, f64::min);
                 base[bi * r + ri] = lo;
                 for (si, v) in shifts.iter().enumerate() {
@@ -217,6 +235,29 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn locality_pushes_slots_back_by_squared_distance_over_radius() {
+        let mut cfg = Config::small();
+        cfg.fg_locality = 2.0;
+        // Slot 0 on the ray, slot 1 three units to its side, both 5 units along it.
+        let frames = [
+            DMat4::from_translation(DVec3::new(0.0, 0.0, 5.0)),
+            DMat4::from_translation(DVec3::new(3.0, 0.0, 5.0)),
+        ];
+        let origins = [DVec3::ZERO];
+        let dirs = [DVec3::Z];
+        let scene = SceneRays {
+            slot_to_world: &frames,
+            origins: &origins,
+            dirs: &dirs,
+        };
+        let batch = RayBatch::new(&cfg, &[scene], &Device::Cpu).unwrap();
+        let shift = batch.shift.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        // Background (world origin) at 0, slot 0 at 5, slot 1 at 5 + 3²/2.
+        assert_eq!(batch.base, vec![0.0]);
+        assert_eq!(shift, vec![0.0, 5.0, 9.5]);
     }
 
     #[test]

@@ -99,6 +99,25 @@ pub struct SlotOutput {
     pub fg_mass: Tensor,
     /// The background's share [B].
     pub bg_mass: Tensor,
+    /// Where each foreground slot attends in the image: the attention-weighted mean token
+    /// position (x right, y down, in [0, 1] of the image's width and height) in the last round
+    /// [B, K, 2]; no gradient flows through it (it only places slot frames, see `frames.rs`).
+    pub fg_centroid: Tensor,
+}
+
+/// Centres of the tokens of a square g×g grid (row-major), as (x, y) in [0, 1] [N, 2].
+fn token_positions(n_tokens: usize, device: &candle_core::Device) -> Result<Tensor> {
+    let g = (n_tokens as f64).sqrt().round() as usize;
+    if g * g != n_tokens {
+        candle_core::bail!("{n_tokens} tokens do not form a square grid");
+    }
+    let xy: Vec<f32> = (0..n_tokens)
+        .flat_map(|t| {
+            let (x, y) = (t % g, t / g);
+            [(x as f32 + 0.5) / g as f32, (y as f32 + 0.5) / g as f32]
+        })
+        .collect();
+    Tensor::from_vec(xy, (n_tokens, 2), device)
 }
 
 /// The slot encoder.
@@ -164,6 +183,7 @@ impl SlotAttention {
             None
         };
         let mut attn = None;
+        let mut token_weights = None;
         for _ in 0..self.iters {
             let q_bg = self.bg.to_q.forward(&self.bg.norm_slot.forward(&bg)?)?;
             let q = match &fg {
@@ -184,6 +204,7 @@ impl SlotAttention {
                 fg = Some(self.fg.update(f, &updates.narrow(1, 1, k)?)?);
             }
             attn = Some(a);
+            token_weights = Some(weights);
         }
         let attn = match attn {
             Some(a) => a,
@@ -196,11 +217,24 @@ impl SlotAttention {
             Some(fg) => fg,
             None => Tensor::zeros((b, 0, d), tokens.dtype(), tokens.device())?,
         };
+        let fg_centroid = match token_weights {
+            Some(w) if k > 0 => {
+                // [B, S, N] · [N, 2] token positions → [B, S, 2], foreground part.
+                let grid = token_positions(n_tokens, tokens.device())?;
+                w.detach()
+                    .t()?
+                    .broadcast_matmul(&grid)?
+                    .narrow(1, 1, k)?
+                    .contiguous()?
+            }
+            _ => Tensor::zeros((b, k, 2), tokens.dtype(), tokens.device())?,
+        };
         Ok(SlotOutput {
             fg,
             bg: bg.squeeze(1)?,
             fg_mass: mass.narrow(1, 1, k)?,
             bg_mass: mass.narrow(1, 0, 1)?.squeeze(1)?,
+            fg_centroid,
         })
     }
 }

@@ -4,7 +4,7 @@
 
 use crate::dataset::SceneData;
 use anyhow::{bail, Result};
-use glam::{DMat4, DVec3};
+use glam::DVec3;
 use rand::rngs::StdRng;
 use rand::Rng;
 
@@ -25,8 +25,8 @@ pub struct SceneSample {
     pub input: Vec<f32>,
     pub input_h: usize,
     pub input_w: usize,
-    /// Camera-to-world of the input view: the frame of every foreground slot.
-    pub input_camera: DMat4,
+    /// The input view's camera (foreground slots' frames are placed from it).
+    pub input_frame: crate::camera::Frame,
     pub origins: Vec<DVec3>,
     pub dirs: Vec<DVec3>,
     /// Target colours, R×3.
@@ -64,7 +64,7 @@ pub fn sample_scene(
         input: input.image.data.clone(),
         input_h: input.image.h as usize,
         input_w: input.image.w as usize,
-        input_camera: input.frame.camera_to_world,
+        input_frame: input.frame.clone(),
         origins: Vec::with_capacity(total),
         dirs: Vec::with_capacity(total),
         targets: Vec::with_capacity(3 * total),

@@ -253,7 +253,15 @@ impl Trainer {
             .collect::<candle_core::Result<Vec<_>>>()?;
         let encoded = model.encode(&Tensor::cat(&images, 0)?, k, &mut rng)?;
         let fields = model.prepare(&encoded.fg, &encoded.bg)?;
-        let frames: Vec<Vec<DMat4>> = samples.iter().map(|s| vec![s.input_camera; k]).collect();
+        let centroids = encoded.fg_centroid.to_vec3::<f32>()?;
+        let frames: Vec<Vec<DMat4>> = samples
+            .iter()
+            .zip(&centroids)
+            .map(|(s, c)| {
+                let c: Vec<[f32; 2]> = c.iter().map(|p| [p[0], p[1]]).collect();
+                crate::model::frames::slot_frames(cfg, &s.input_frame, &c)
+            })
+            .collect();
         let scene_rays: Vec<SceneRays> = samples
             .iter()
             .zip(&frames)

@@ -1,0 +1,86 @@
+//! Where foreground slots live: the frame (`slot_to_world`) each slot's light field works in.
+//!
+//! By default every slot of an image gets that image's camera frame (the paper's choice). With
+//! `Config::attention_frames`, each foreground slot's frame is the camera frame moved to where
+//! the slot attends: the frame origin is put on the ray through the slot's attention centroid,
+//! at the depth of the point on the optical axis closest to the world origin (the scene centre
+//! the cameras look at; `scene_scale` if that point is behind the camera). Why: an object then
+//! sits near its slot's frame origin, so rays that hit it have small Plücker moments in that
+//! frame and the light field needs no latent-dependent notion of "where in the image" (trained
+//! with camera frames, the foreground slots carved the image into fixed regions instead of
+//! following the objects); and the ordering shift of each slot (`rays.rs`) becomes roughly its
+//! distance along the ray. Frames stay rigid (the camera's rotation), so edits compose as
+//! before, and they are stored in the codes file like any other frame.
+
+use super::config::Config;
+use crate::camera::Frame;
+use glam::{DMat4, DVec3};
+
+/// The frames of foreground slots attending at `centroids` ((x, y) in [0, 1] of the image
+/// `camera` saw), one per slot.
+pub fn slot_frames(cfg: &Config, camera: &Frame, centroids: &[[f32; 2]]) -> Vec<DMat4> {
+    if !cfg.attention_frames {
+        return vec![camera.camera_to_world; centroids.len()];
+    }
+    let origin = camera.origin();
+    let forward = -camera.camera_to_world.z_axis.truncate().normalize();
+    let depth = {
+        let d = (-origin).dot(forward);
+        if d.is_finite() && d > 1e-6 * cfg.scene_scale {
+            d
+        } else {
+            cfg.scene_scale
+        }
+    };
+    let (w, h) = (camera.intrinsics.w as f64, camera.intrinsics.h as f64);
+    centroids
+        .iter()
+        .map(|&[x, y]| {
+            let (x, y) = ((x as f64).clamp(0.0, 1.0), (y as f64).clamp(0.0, 1.0));
+            let dir = camera.ray_at(x * w, y * h).direction;
+            // The point of the ray at `depth` along the optical axis.
+            let along = dir.dot(forward).max(1e-6);
+            let at: DVec3 = origin + dir * (depth / along);
+            let mut frame = camera.camera_to_world;
+            frame.w_axis = at.extend(1.0);
+            frame
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{look_at, Intrinsics};
+
+    fn camera() -> Frame {
+        Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(64, 64, 49.13),
+            camera_to_world: look_at(DVec3::new(0.0, -8.0, 9.0), DVec3::ZERO, DVec3::Z).unwrap(),
+        }
+    }
+
+    #[test]
+    fn camera_frames_by_default() {
+        let cam = camera();
+        let frames = slot_frames(&Config::small(), &cam, &[[0.1, 0.9], [0.5, 0.5]]);
+        assert!(frames.iter().all(|f| *f == cam.camera_to_world));
+    }
+
+    #[test]
+    fn attention_frames_sit_on_the_centroid_ray_at_the_scene_depth() {
+        let mut cfg = Config::small();
+        cfg.attention_frames = true;
+        let cam = camera();
+        let frames = slot_frames(&cfg, &cam, &[[0.5, 0.5], [0.2, 0.7]]);
+        // The image centre looks at the world origin: that slot's frame is centred there.
+        assert!(frames[0].w_axis.truncate().length() < 1e-9);
+        // The other lies on its pixel's ray and projects back to its centroid.
+        let (u, v) = cam.project(frames[1].w_axis.truncate()).unwrap();
+        assert!((u - 0.2 * 64.0).abs() < 1e-6 && (v - 0.7 * 64.0).abs() < 1e-6);
+        // Rotation is the camera's: frames are rigid.
+        let rot = |m: &DMat4| glam::DMat3::from_mat4(*m);
+        assert!(rot(&frames[1]).abs_diff_eq(rot(&cam.camera_to_world), 1e-12));
+    }
+}
