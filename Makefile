@@ -9,7 +9,7 @@ RELEASE := target/release
 BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 DEMO := out/demo
 
-.PHONY: all build test lint man demo bench install uninstall clean
+.PHONY: all build test lint man demo model bench tradeoff install uninstall clean
 
 all: build
 
@@ -24,6 +24,15 @@ test:
 bench: build
 	$(CARGO) build --release --example bench
 	$(RELEASE)/examples/bench --out target/bench/bench.json
+
+# The speed/accuracy curve of --adaptive, --prune and resolution on held-out scenes, for the
+# model MODEL (default: the bundled one): docs/tradeoff.md (table) and docs/tradeoff.png.
+MODEL ?= models/default.safetensors
+TRADEOFF_SCENES ?= 5
+tradeoff: build
+	$(CARGO) build --release --example tradeoff
+	$(RELEASE)/examples/tradeoff --model $(MODEL) --scenes $(TRADEOFF_SCENES) \
+	  --md docs/tradeoff.md --png docs/tradeoff.png
 
 lint:
 	$(CARGO) fmt --check
@@ -60,6 +69,29 @@ demo: build
 	  - $(DEMO)/edited/frame_000{0,1,2,3}.mask.png
 	@echo "demo: slots in $(DEMO)/slots.json, renders in $(DEMO)/orbit and $(DEMO)/edited,"
 	@echo "      contact sheet $(DEMO)/sheet.png"
+
+# The default model's recipe (README, "The default model"): 400 training and 100 held-out
+# clevr567 scenes at 64², then colf-train with slot frames at the attention centroids, a
+# locality bound, 6 Fourier frequencies on the rays, a zero background latent and weak mask
+# supervision. Two cores, MODEL_STEPS steps; re-running `make model` resumes from the
+# checkpoint $(MODEL_RUN)/model.safetensors.ckpt (a stopped run loses nothing), and the result
+# is copied to models/default.safetensors. Training data and logs stay in $(MODEL_RUN).
+MODEL_RUN ?= out/model
+MODEL_STEPS ?= 100000
+model: build
+	@mkdir -p $(MODEL_RUN)
+	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
+	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
+	$(RELEASE)/colf-train --data $(MODEL_RUN)/data/train --eval-data $(MODEL_RUN)/data/test \
+	  --out $(MODEL_RUN)/model.safetensors --steps $(MODEL_STEPS) \
+	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume) \
+	  --lr 3e-4 --warmup 500 --mask-weight 0.1 --object-fraction 0.2 --zero-background \
+	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2 \
+	  --eval-every 1000 --eval-scenes 8 --checkpoint-every 250 --seed 9
+	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
+	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
+	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json
+	cp $(MODEL_RUN)/model.safetensors models/default.safetensors
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1

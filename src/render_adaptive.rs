@@ -3,11 +3,12 @@
 //!
 //! 1. Render the compositor weights of all slots at reduced resolution: one ray through the
 //!    centre of every `factor`×`factor` block of pixels (`factor` = [`COARSE_FACTOR`]).
-//! 2. Dilate each slot's coarse weight map by taking the maximum over the (2r + 1)² neighbouring
-//!    blocks (r = [`DILATE_BLOCKS`]), so an object edge that falls between coarse samples is
-//!    still covered.
-//! 3. Render the full-resolution frame, evaluating slot k at a pixel only where its dilated
-//!    coarse weight exceeds ε; elsewhere the slot is left out of that pixel's composition
+//! 2. For every full-resolution pixel, take each slot's largest coarse weight over the pixel's
+//!    support: the 2×2 coarse samples a bilinear upsampling would blend for it (widened by
+//!    [`DILATE_BLOCKS`] − 1 samples each way), so a slot visible at either side of a pixel's
+//!    cell is still evaluated there.
+//! 3. Render the full-resolution frame, evaluating slot k at a pixel only where that maximum
+//!    exceeds ε; elsewhere the slot is left out of that pixel's composition
 //!    (weight 0, ordering +∞). The background is always evaluated, so every pixel has at least
 //!    one field and its weights still sum to 1.
 //!
@@ -24,7 +25,8 @@ use glam::DVec3;
 
 /// Side of the pixel block one coarse ray stands for.
 pub const COARSE_FACTOR: u32 = 4;
-/// Dilation radius of the coarse weight maps, in blocks.
+/// Support of a pixel in the coarse grid, per direction: 1 = the 2×2 samples of bilinear
+/// upsampling; each step more widens it by one coarse sample on every side.
 pub const DILATE_BLOCKS: i64 = 1;
 /// The ε `--adaptive` uses without a value (chosen from the measurements in docs/tradeoff.md).
 pub const RECOMMENDED_EPS: f32 = 0.01;
@@ -65,34 +67,31 @@ pub fn active_mask(
         }
     }
     let coarse: RayOutput = renderer.render(&origins, &dirs, None, None)?;
-    // Dilated maxima per block and field.
-    let mut dilated = vec![0f32; cw * ch * s];
-    for j in 0..ch as i64 {
-        for i in 0..cw as i64 {
-            let at = (j as usize * cw + i as usize) * s;
-            for dj in -DILATE_BLOCKS..=DILATE_BLOCKS {
-                for di in -DILATE_BLOCKS..=DILATE_BLOCKS {
-                    let (x, y) = (i + di, j + dj);
-                    if x < 0 || y < 0 || x >= cw as i64 || y >= ch as i64 {
-                        continue;
-                    }
-                    let from = (y as usize * cw + x as usize) * s;
-                    for k in 0..s {
-                        dilated[at + k] = dilated[at + k].max(coarse.weights[from + k]);
-                    }
-                }
-            }
-        }
-    }
+    // A pixel's support: the coarse samples a bilinear upsampling would blend for it (the 2×2
+    // around it, fewer at the border), widened by `DILATE_BLOCKS` − 1 in every direction.
+    let support = |x: usize, n: usize, cn: usize| -> (usize, usize) {
+        let u = (x as f64 + 0.5) / f as f64 - 0.5;
+        let lo = u.floor() as i64 - (DILATE_BLOCKS - 1);
+        let hi = u.floor() as i64 + DILATE_BLOCKS;
+        let _ = n;
+        (lo.max(0) as usize, hi.min(cn as i64 - 1) as usize)
+    };
     let mut mask = vec![false; w * h * s];
     let mut evaluated = 0;
     for y in 0..h {
+        let (y0, y1) = support(y, h, ch);
         for x in 0..w {
-            let block = ((y / f) * cw + x / f) * s;
+            let (x0, x1) = support(x, w, cw);
             let at = (y * w + x) * s;
             mask[at] = true;
             for k in 1..s {
-                let on = dilated[block + k] > eps;
+                let mut best = 0f32;
+                for by in y0..=y1 {
+                    for bx in x0..=x1 {
+                        best = best.max(coarse.weights[(by * cw + bx) * s + k]);
+                    }
+                }
+                let on = best > eps;
                 mask[at + k] = on;
                 evaluated += on as usize;
             }
@@ -201,11 +200,12 @@ mod tests {
         let o: Vec<DVec3> = coarse_frame_rays.iter().map(|r| r.origin).collect();
         let d: Vec<DVec3> = coarse_frame_rays.iter().map(|r| r.direction).collect();
         let coarse = r.render(&o, &d, None, None).unwrap();
-        let (x, y) = (9usize, 6usize); // block (2, 1)
+        // Pixel (9, 6) sits between coarse samples 1 and 2 in both directions.
+        let (x, y) = (9usize, 6usize);
         for k in 1..4 {
             let mut best = 0f32;
-            for bj in 0..3 {
-                for bi in 1..4 {
+            for bj in 1..3 {
+                for bi in 1..3 {
                     best = best.max(coarse.weights[(bj * 5 + bi) * 4 + k]);
                 }
             }

@@ -26,9 +26,9 @@
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
 use crate::model::rays::plucker_in_frame;
-use crate::model::{Colf, PreparedSlots, RayOutput};
+use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
-use candle_core::Tensor;
+use candle_core::{Device, Tensor};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
 
@@ -163,6 +163,8 @@ struct LightFieldHost {
     scene_scale: f64,
     freqs: usize,
     in_dim: usize,
+    /// The model's config with Fourier features off, for the shifts of `RayBatch`.
+    shift_cfg: Config,
 }
 
 impl LightFieldHost {
@@ -253,6 +255,10 @@ impl LightFieldHost {
             scene_scale: cfg.scene_scale,
             freqs: cfg.ray_fourier_freqs,
             in_dim: cfg.ray_input_dim(),
+            shift_cfg: Config {
+                ray_fourier_freqs: 0,
+                ..cfg.clone()
+            },
         })
     }
 
@@ -281,7 +287,8 @@ struct Scratch {
     order: Vec<f32>,
     world: Vec<f32>,
     score: Vec<f32>,
-    shift: Vec<f64>,
+    front: Vec<f32>,
+    shift: Vec<f32>,
     base: Vec<f64>,
     sigma: Vec<f32>,
 }
@@ -295,9 +302,10 @@ fn grow(v: &mut Vec<f32>, n: usize) {
 /// A scene ready for the fast renderer: host copies of the weights, made once.
 pub struct FastRenderer {
     kind: Kind,
-    /// Frame inverses (background: identity) and translations, for the 1 + K fields.
+    /// Frame inverses for the 1 + K fields (background: identity).
     inverses: Vec<DMat4>,
-    translations: Vec<DVec3>,
+    /// The K foreground frames (for `RayBatch`).
+    slot_to_world: Vec<DMat4>,
 }
 
 enum Kind {
@@ -316,14 +324,12 @@ impl FastRenderer {
             );
         }
         let mut inverses = vec![DMat4::IDENTITY];
-        let mut translations = vec![DVec3::ZERO];
         for (k, m) in slot_to_world.iter().enumerate() {
             let det = m.determinant();
             if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
                 bail!("slot {k}'s slot_to_world is not an invertible finite matrix");
             }
             inverses.push(m.inverse());
-            translations.push(m.w_axis.truncate());
         }
         let kind = if colf.model().volumetric().is_some() {
             Kind::Volumetric(Box::new(VolumetricHost::new(colf, prepared)?))
@@ -333,7 +339,7 @@ impl FastRenderer {
         Ok(FastRenderer {
             kind,
             inverses,
-            translations,
+            slot_to_world: slot_to_world.to_vec(),
         })
     }
 
@@ -394,7 +400,7 @@ impl FastRenderer {
                     .zip(out.weights.par_chunks_mut(s * LF_CHUNK))
                     .zip(out.ordering.par_chunks_mut(s * LF_CHUNK))
                     .enumerate()
-                    .for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
+                    .try_for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
                         let start = ci * LF_CHUNK;
                         let n = rgb.len() / 3;
                         self.lf_chunk(
@@ -406,8 +412,8 @@ impl FastRenderer {
                             rgb,
                             w,
                             ord,
-                        );
-                    });
+                        )
+                    })?;
             }
             Kind::Volumetric(vol) => {
                 if active.is_some() {
@@ -454,7 +460,7 @@ impl FastRenderer {
         rgb: &mut [f32],
         weights: &mut [f32],
         ordering: &mut [f32],
-    ) {
+    ) -> Result<()> {
         let s = self.fields();
         let n = origins.len();
         let in_dim = lf.in_dim;
@@ -466,24 +472,21 @@ impl FastRenderer {
         grow(&mut sc.order, n * s);
         grow(&mut sc.world, n * s);
         grow(&mut sc.score, n * s);
-        sc.shift.resize(n * s, 0.0);
-        sc.base.resize(n, 0.0);
         let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
-        // Ordering shifts (f64), relative to the per-ray smallest one, as `RayBatch`.
-        for ri in 0..n {
-            let o = origins[ri];
-            let d = dirs[ri].normalize();
-            let mut lo = f64::INFINITY;
-            for si in 0..s {
-                let v = (self.translations[si] - o).dot(d);
-                sc.shift[ri * s + si] = v;
-                lo = lo.min(v);
-            }
-            sc.base[ri] = lo;
-            for si in 0..s {
-                sc.shift[ri * s + si] -= lo;
-            }
-        }
+        // The ordering shifts (and their per-ray base) by the code the candle path uses
+        // (`RayBatch`, with Fourier features off: only the shifts are used from it), so the two
+        // cannot drift apart; ray coordinates below, for the rays a field is evaluated on only.
+        let rays = RayBatch::new(
+            &lf.shift_cfg,
+            &[SceneRays {
+                slot_to_world: &self.slot_to_world,
+                origins,
+                dirs,
+            }],
+            &Device::Cpu,
+        )?;
+        sc.shift = rays.shift.flatten_all()?.to_vec1::<f32>()?; // [n, S]
+        sc.base = rays.base;
         let h2 = lf.head_first.output;
         for si in 0..s {
             sc.rows.clear();
@@ -492,7 +495,7 @@ impl FastRenderer {
             if m == 0 {
                 continue;
             }
-            // Ray coordinates in this field's frame.
+            // Bounded Plücker coordinates and Fourier features, exactly as `RayBatch`.
             let inv = &self.inverses[si];
             for (j, &ri) in sc.rows.iter().enumerate() {
                 let p = plucker_in_frame(inv, origins[ri], dirs[ri], lf.scene_scale);
@@ -548,12 +551,18 @@ impl FastRenderer {
             for si in 0..s {
                 let at = ri * s + si;
                 sc.world[at] = if is_active(ri, si) {
-                    sc.order[at] * scale + sc.shift[at] as f32
+                    sc.order[at] * scale + sc.shift[at]
                 } else {
                     f32::INFINITY
                 };
             }
         }
+        sc.front.clear();
+        sc.front.extend(
+            sc.world[..n * s]
+                .chunks_exact(s)
+                .map(|row| row.iter().copied().fold(f32::INFINITY, f32::min)),
+        );
         for si in 0..s {
             sc.rows.clear();
             sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
@@ -562,9 +571,7 @@ impl FastRenderer {
                 continue;
             }
             for (j, &ri) in sc.rows.iter().enumerate() {
-                let row = &sc.world[ri * s..(ri + 1) * s];
-                let front = row.iter().copied().fold(f32::INFINITY, f32::min);
-                let gap = (row[si] - front) / scale;
+                let gap = (sc.world[ri * s + si] - sc.front[ri]) / scale;
                 let squashed = gap / (gap * gap + 1.0).sqrt();
                 sc.c[j * 2] = sc.order[ri * s + si];
                 sc.c[j * 2 + 1] = -squashed;
@@ -620,6 +627,7 @@ impl FastRenderer {
             }
             rgb[ri * 3..ri * 3 + 3].copy_from_slice(&col);
         }
+        Ok(())
     }
 
     /// One chunk of volumetric rays; see `model/volumetric.rs`.

@@ -110,6 +110,14 @@ fn light_field_with_fourier_features_matches_candle() {
 }
 
 #[test]
+fn light_field_with_a_locality_bound_matches_candle() {
+    let cfg = Config::small()
+        .with_overrides(&["fg_locality=2.0".into(), "ray_fourier_freqs=6".into()])
+        .unwrap();
+    compare(&cfg, 6, 400, 2e-3);
+}
+
+#[test]
 fn volumetric_matches_candle() {
     compare(&Config::volumetric(), 3, 40, 2e-3);
 }

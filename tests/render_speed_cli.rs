@@ -1,0 +1,165 @@
+//! CLI tests of colf-render's speed options: `--adaptive [EPS]`, and the volumetric baseline
+//! (`colf-train init --preset volumetric`, `--samples N`) through encode | render.
+
+use assert_cmd::Command;
+use std::path::{Path, PathBuf};
+
+fn bin(name: &str) -> Command {
+    Command::cargo_bin(name).unwrap()
+}
+
+fn scene(dir: &Path) -> PathBuf {
+    bin("colf-synth")
+        .args([
+            "--scenes", "1", "--seed", "11", "-q", "--split", "test", "--out",
+        ])
+        .arg(dir.join("data"))
+        .assert()
+        .success();
+    dir.join("data/scene_00000")
+}
+
+fn one_line_error(out: &std::process::Output, needle: &str) {
+    assert_eq!(out.status.code(), Some(1), "{out:?}");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(err.starts_with("colf-render: error: "), "{err}");
+    assert!(err.contains(needle), "`{err}` lacks `{needle}`");
+}
+
+fn render(codes: &Path, cams: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
+    bin("colf-render")
+        .arg(codes)
+        .arg("--cameras")
+        .arg(cams)
+        .arg("--out")
+        .arg(out)
+        .args(["-q", "--masks"])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+fn read(p: PathBuf) -> Vec<u8> {
+    std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+#[test]
+fn adaptive_renders_deterministically_and_a_large_eps_leaves_only_the_background() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let codes = dir.path().join("a.codes");
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .arg("-o")
+        .arg(&codes)
+        .assert()
+        .success();
+    let cams = scene.join("transforms.json");
+    for out in ["a1", "a2"] {
+        let o = render(&codes, &cams, &dir.path().join(out), &["--adaptive"]);
+        assert!(o.status.success(), "{o:?}");
+    }
+    for v in 0..4 {
+        for ext in ["png", "mask.png"] {
+            let name = format!("view_{v:03}.{ext}");
+            assert_eq!(
+                read(dir.path().join("a1").join(&name)),
+                read(dir.path().join("a2").join(&name)),
+                "{name}"
+            );
+        }
+    }
+    // ε above any weight: no foreground slot is evaluated, every pixel is background.
+    let o = render(
+        &codes,
+        &cams,
+        &dir.path().join("bg"),
+        &["--adaptive", "1.5"],
+    );
+    assert!(o.status.success(), "{o:?}");
+    let (_, _, labels) =
+        colf::image_io::read_labels(dir.path().join("bg/view_001.mask.png").to_str().unwrap())
+            .unwrap();
+    assert!(labels.iter().all(|&l| l == 0));
+    // Bad values: one line, exit 1, no output folder.
+    for bad in ["nan", "inf"] {
+        let out = dir.path().join(format!("bad_{bad}"));
+        one_line_error(&render(&codes, &cams, &out, &["--adaptive", bad]), "ε");
+        assert!(!out.exists());
+    }
+    let out = dir.path().join("bad_samples");
+    one_line_error(
+        &render(&codes, &cams, &out, &["--samples", "16"]),
+        "volumetric models only",
+    );
+    assert!(!out.exists());
+}
+
+#[test]
+fn a_volumetric_model_encodes_and_renders_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let model = dir.path().join("vol.safetensors");
+    bin("colf-train")
+        .args(["init", "--preset", "volumetric", "--seed", "2", "-o"])
+        .arg(&model)
+        .assert()
+        .success();
+    let codes = dir.path().join("v.codes");
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .args(["--slots", "3", "--model"])
+        .arg(&model)
+        .arg("-o")
+        .arg(&codes)
+        .assert()
+        .success();
+    let cams = scene.join("transforms.json");
+    let m = model.to_str().unwrap();
+    for out in ["v1", "v2"] {
+        let o = render(
+            &codes,
+            &cams,
+            &dir.path().join(out),
+            &["--model", m, "--samples", "12", "--exr", "--frames", "1..3"],
+        );
+        assert!(o.status.success(), "{o:?}");
+    }
+    for v in 1..3 {
+        for ext in ["png", "mask.png", "exr"] {
+            let name = format!("view_{v:03}.{ext}");
+            assert_eq!(
+                read(dir.path().join("v1").join(&name)),
+                read(dir.path().join("v2").join(&name)),
+                "{name}"
+            );
+        }
+    }
+    // More samples change the picture (the samples are really taken).
+    let o = render(
+        &codes,
+        &cams,
+        &dir.path().join("v3"),
+        &["--model", m, "--samples", "40", "--frames", "1"],
+    );
+    assert!(o.status.success());
+    assert_ne!(
+        read(dir.path().join("v1/view_001.png")),
+        read(dir.path().join("v3/view_001.png"))
+    );
+    let out = dir.path().join("bad");
+    one_line_error(
+        &render(&codes, &cams, &out, &["--model", m, "--adaptive"]),
+        "light-field models only",
+    );
+    one_line_error(
+        &render(&codes, &cams, &out, &["--model", m, "--samples", "0"]),
+        "--samples",
+    );
+    assert!(!out.exists());
+}
