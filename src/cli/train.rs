@@ -105,6 +105,12 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0.0, value_name = "W")]
     pub mask_weight: f64,
 
+    /// Weak supervision of slot attention: cross-entropy between each token's attention over
+    /// the slots and the input view's ground-truth mask, objects matched to slots by the
+    /// Hungarian method on the attention (0 = none, the default).
+    #[arg(long, default_value_t = 0.0, value_name = "W")]
+    pub attention_mask_weight: f64,
+
     /// Share of each view's rays drawn from ground-truth object pixels (uses masks; 0 = uniform).
     #[arg(long, default_value_t = 0.0, value_name = "F")]
     pub object_fraction: f64,
@@ -242,6 +248,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         l1_weight: args.l1_weight,
         latent_weight: args.latent_weight,
         mask_weight: args.mask_weight,
+        attention_mask_weight: args.attention_mask_weight,
         object_fraction: args.object_fraction,
         zero_background: args.zero_background,
         config_overrides: args.config_overrides.clone(),

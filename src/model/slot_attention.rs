@@ -103,6 +103,9 @@ pub struct SlotOutput {
     /// position (x right, y down, in [0, 1] of the image's width and height) in the last round
     /// [B, K, 2]; no gradient flows through it (it only places slot frames, see `frames.rs`).
     pub fg_centroid: Tensor,
+    /// log of the last round's attention over the slots per token [B, N, 1 + K] (background
+    /// first), by log-softmax (for losses on the attention).
+    pub log_attention: Tensor,
 }
 
 /// Centres of the tokens of a square g×g grid (row-major), as (x, y) in [0, 1] [N, 2].
@@ -184,6 +187,7 @@ impl SlotAttention {
         };
         let mut attn = None;
         let mut token_weights = None;
+        let mut last_logits = None;
         for _ in 0..self.iters {
             let q_bg = self.bg.to_q.forward(&self.bg.norm_slot.forward(&bg)?)?;
             let q = match &fg {
@@ -196,6 +200,7 @@ impl SlotAttention {
             let logits = (keys.matmul(&q.t()?)? * scale)?; // [B, N, S]
                                                            // Softmax over the slots: the slots compete for every token.
             let a = (candle_nn::ops::softmax(&logits, D::Minus1)? + 1e-8)?;
+            last_logits = Some(logits);
             // Weighted mean over the tokens each slot won.
             let weights = a.broadcast_div(&a.sum_keepdim(1)?)?;
             let updates = weights.t()?.matmul(&values)?; // [B, S, D]
@@ -229,12 +234,17 @@ impl SlotAttention {
             }
             _ => Tensor::zeros((b, k, 2), tokens.dtype(), tokens.device())?,
         };
+        let log_attention = match last_logits {
+            Some(l) => candle_nn::ops::log_softmax(&l, D::Minus1)?,
+            None => candle_core::bail!("slot_iters must be positive"),
+        };
         Ok(SlotOutput {
             fg,
             bg: bg.squeeze(1)?,
             fg_mass: mass.narrow(1, 1, k)?,
             bg_mass: mass.narrow(1, 0, 1)?.squeeze(1)?,
             fg_centroid,
+            log_attention,
         })
     }
 }

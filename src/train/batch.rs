@@ -25,6 +25,8 @@ pub struct SceneSample {
     pub input: Vec<f32>,
     pub input_h: usize,
     pub input_w: usize,
+    /// Object ids of the input view per pixel (0 = background), when the data has masks.
+    pub input_mask: Option<Vec<u8>>,
     /// The input view's camera (foreground slots' frames are placed from it).
     pub input_frame: crate::camera::Frame,
     pub origins: Vec<DVec3>,
@@ -64,6 +66,7 @@ pub fn sample_scene(
         input: input.image.data.clone(),
         input_h: input.image.h as usize,
         input_w: input.image.w as usize,
+        input_mask: input.mask.clone(),
         input_frame: input.frame.clone(),
         origins: Vec::with_capacity(total),
         dirs: Vec::with_capacity(total),

@@ -48,6 +48,9 @@ pub struct TrainOptions {
     pub latent_weight: f64,
     /// Weak supervision from ground-truth masks (Hungarian-matched slots); 0 = unsupervised.
     pub mask_weight: f64,
+    /// Weak supervision of the slot attention by the input view's mask (0 = none).
+    #[serde(default)]
+    pub attention_mask_weight: f64,
     /// Share of rays drawn from object pixels (uses masks).
     pub object_fraction: f64,
     /// Fresh models only: render the background from a zero latent, so it cannot depend on the
@@ -94,6 +97,7 @@ impl TrainOptions {
             ("l1 weight", self.l1_weight),
             ("latent weight", self.latent_weight),
             ("mask weight", self.mask_weight),
+            ("attention mask weight", self.attention_mask_weight),
         ] {
             if !(v >= 0.0 && v.is_finite()) {
                 bail!("{name} must be a non-negative number");
@@ -123,6 +127,9 @@ pub struct StepLog {
     /// Foreground slots that win at least one sampled ray, averaged over scenes.
     pub slots_used: f64,
     pub mask_loss: Option<f64>,
+    /// Cross-entropy of the slot attention against the input view's mask (when supervised).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub attention_mask_loss: Option<f64>,
     pub lr: f64,
     pub grad_norm: f64,
     pub rays_per_s: f64,
@@ -287,34 +294,54 @@ impl Trainer {
         if opts.latent_weight > 0.0 && k > 0 {
             loss = (loss + (encoded.fg.sqr()?.mean_all()? * opts.latent_weight)?)?;
         }
+        let mut log = StepLog::default();
         let weights_host = decoded.weights.flatten_all()?.to_vec1::<f32>()?;
         let s = 1 + k;
         let mut mask_loss_value = None;
         if opts.mask_weight > 0.0 && samples.iter().all(|s| s.has_masks) {
             let (index, valid) = matched_targets(&samples, &weights_host, s);
             let ray_weights = balanced_ray_weights(&index, &valid);
-            let index = Tensor::from_vec(index, (b, r, 1), &dev)?;
-            let ray_weights = Tensor::from_vec(ray_weights, (b, r), &dev)?;
-            let log_w = decoded
-                .log_weights
-                .gather(&index, D::Minus1)?
-                .squeeze(D::Minus1)?;
-            let ce = (log_w * &ray_weights)?.sum_all()?.neg()?;
+            let ce = weighted_cross_entropy(&decoded.log_weights, index, ray_weights)?;
             mask_loss_value = Some(ce.to_scalar::<f32>()? as f64);
             loss = (loss + (ce * opts.mask_weight)?)?;
+        }
+        if opts.attention_mask_weight > 0.0 && k > 0 {
+            if let Some(masks) = samples
+                .iter()
+                .map(|s| s.input_mask.as_ref())
+                .collect::<Option<Vec<_>>>()
+            {
+                // Supervise slot attention itself: each token's attention over the slots
+                // against the input view's mask, objects matched to slots on the attention.
+                let g = cfg.token_grid();
+                let attention = encoded
+                    .log_attention
+                    .exp()?
+                    .flatten_all()?
+                    .to_vec1::<f32>()?;
+                let (mut index, mut valid) = (Vec::new(), Vec::new());
+                for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
+                    let ids = token_ids(mask, sample.input_w, sample.input_h, g);
+                    let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
+                    let (i, v) = match_objects(&ids, scene, s);
+                    index.extend(i);
+                    valid.extend(v);
+                }
+                let weights = balanced_ray_weights(&index, &valid);
+                let ce = weighted_cross_entropy(&encoded.log_attention, index, weights)?;
+                log.attention_mask_loss = Some(ce.to_scalar::<f32>()? as f64);
+                loss = (loss + (ce * opts.attention_mask_weight)?)?;
+            }
         }
         let loss_value = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
         let mse_value = mse.to_dtype(DType::F64)?.to_scalar::<f64>()?;
         let lr = self.learning_rate();
-        let mut log = StepLog {
-            step: self.step,
-            loss: loss_value,
-            mse: mse_value,
-            psnr: -10.0 * mse_value.max(1e-12).log10(),
-            lr,
-            mask_loss: mask_loss_value,
-            ..Default::default()
-        };
+        log.step = self.step;
+        log.loss = loss_value;
+        log.mse = mse_value;
+        log.psnr = -10.0 * mse_value.max(1e-12).log10();
+        log.lr = lr;
+        log.mask_loss = mask_loss_value;
         let rgb_host = decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
         ray_metrics(&mut log, &samples, &rgb_host, &targets, &weights_host, s);
         log.forward_s = started.elapsed().as_secs_f64();
@@ -458,50 +485,84 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
 /// background rays target the background. Returns per ray the target field index and a 0/1
 /// validity (objects left unmatched when there are more objects than slots are ignored).
 fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) {
-    use pathfinding::prelude::{kuhn_munkres, Matrix};
     let r = samples[0].ids.len();
-    let mut index = vec![0u32; samples.len() * r];
-    let mut valid = vec![1f32; samples.len() * r];
+    let mut index = Vec::with_capacity(samples.len() * r);
+    let mut valid = Vec::with_capacity(samples.len() * r);
     for (bi, sample) in samples.iter().enumerate() {
-        let mut objects: Vec<u8> = sample.ids.iter().copied().filter(|&id| id > 0).collect();
-        objects.sort_unstable();
-        objects.dedup();
-        let k = s - 1;
-        let rows = objects.len().min(k);
-        let mut assignment = BTreeMap::new();
-        if rows > 0 {
-            // Keep the objects with the most rays when there are more objects than slots.
-            objects.sort_by_key(|&o| {
-                std::cmp::Reverse(sample.ids.iter().filter(|&&i| i == o).count())
-            });
-            objects.truncate(rows);
-            let mut overlap = vec![0i64; rows * k];
-            for (ri, &id) in sample.ids.iter().enumerate() {
-                if let Some(row) = objects.iter().position(|&o| o == id) {
-                    let w = &weights[(bi * r + ri) * s..(bi * r + ri + 1) * s];
-                    for slot in 0..k {
-                        overlap[row * k + slot] += (w[1 + slot] * 1e4) as i64;
-                    }
-                }
-            }
-            let matrix = Matrix::from_vec(rows, k, overlap).expect("rows × k");
-            let (_, cols) = kuhn_munkres(&matrix);
-            for (row, col) in cols.into_iter().enumerate() {
-                assignment.insert(objects[row], col as u32 + 1);
-            }
-        }
-        for (ri, &id) in sample.ids.iter().enumerate() {
-            let at = bi * r + ri;
-            if id == 0 {
-                index[at] = 0;
-            } else if let Some(&field) = assignment.get(&id) {
-                index[at] = field;
-            } else {
-                valid[at] = 0.0;
-            }
-        }
+        let (i, v) = match_objects(&sample.ids, &weights[bi * r * s..(bi + 1) * r * s], s);
+        index.extend(i);
+        valid.extend(v);
     }
     (index, valid)
+}
+
+/// One scene's matching: `ids` per element (ray or token; 0 = background), `weights` the
+/// model's soft assignment of each element to the s fields (background first), row-major.
+/// Objects are matched to foreground fields by the Hungarian method on their summed weights;
+/// returns per element the target field and a 0/1 validity (objects beyond the slot count,
+/// the smallest ones, are left out).
+fn match_objects(ids: &[u8], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) {
+    use pathfinding::prelude::{kuhn_munkres, Matrix};
+    let mut objects: Vec<u8> = ids.iter().copied().filter(|&id| id > 0).collect();
+    objects.sort_unstable();
+    objects.dedup();
+    let k = s - 1;
+    let rows = objects.len().min(k);
+    let mut assignment = BTreeMap::new();
+    if rows > 0 {
+        // Keep the objects with the most elements when there are more objects than slots.
+        objects.sort_by_key(|&o| std::cmp::Reverse(ids.iter().filter(|&&i| i == o).count()));
+        objects.truncate(rows);
+        let mut overlap = vec![0i64; rows * k];
+        for (e, &id) in ids.iter().enumerate() {
+            if let Some(row) = objects.iter().position(|&o| o == id) {
+                let w = &weights[e * s..(e + 1) * s];
+                for slot in 0..k {
+                    overlap[row * k + slot] += (w[1 + slot] * 1e4) as i64;
+                }
+            }
+        }
+        let matrix = Matrix::from_vec(rows, k, overlap).expect("rows × k");
+        let (_, cols) = kuhn_munkres(&matrix);
+        for (row, col) in cols.into_iter().enumerate() {
+            assignment.insert(objects[row], col as u32 + 1);
+        }
+    }
+    ids.iter()
+        .map(|&id| match (id, assignment.get(&id)) {
+            (0, _) => (0, 1.0),
+            (_, Some(&field)) => (field, 1.0),
+            (_, None) => (0, 0.0),
+        })
+        .unzip()
+}
+
+/// Object ids of a token grid (g×g, row-major) from a w×h mask: each token takes the id of
+/// the pixel under its centre.
+fn token_ids(mask: &[u8], w: usize, h: usize, g: usize) -> Vec<u8> {
+    (0..g * g)
+        .map(|t| {
+            let (tx, ty) = (t % g, t / g);
+            let x = (((tx as f64 + 0.5) / g as f64) * w as f64) as usize;
+            let y = (((ty as f64 + 0.5) / g as f64) * h as f64) as usize;
+            mask[y.min(h - 1) * w + x.min(w - 1)]
+        })
+        .collect()
+}
+
+/// Cross-entropy of labels `index` under log-probabilities `log_p` [B, N, S], each element
+/// weighted by `weights` (summing to 1): −Σ w · log p[index].
+fn weighted_cross_entropy(
+    log_p: &Tensor,
+    index: Vec<u32>,
+    weights: Vec<f32>,
+) -> candle_core::Result<Tensor> {
+    let (b, n, _) = log_p.dims3()?;
+    let dev = log_p.device();
+    let index = Tensor::from_vec(index, (b, n, 1), dev)?;
+    let weights = Tensor::from_vec(weights, (b, n), dev)?;
+    let picked = log_p.gather(&index, D::Minus1)?.squeeze(D::Minus1)?;
+    (picked * weights)?.sum_all()?.neg()
 }
 
 /// Per-ray weights of the mask cross-entropy: background rays and object rays each carry half
@@ -582,6 +643,36 @@ fn ray_metrics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn objects_match_the_slots_that_hold_them() {
+        // 3 fields (background + 2 slots); object 5 sits in slot 2, object 9 in slot 1.
+        let ids = [0u8, 5, 5, 9, 0];
+        let weights = [
+            0.9, 0.05, 0.05, // background element
+            0.1, 0.2, 0.7, // object 5
+            0.1, 0.1, 0.8, // object 5
+            0.2, 0.7, 0.1, // object 9
+            0.8, 0.1, 0.1, // background element
+        ];
+        let (index, valid) = match_objects(&ids, &weights, 3);
+        assert_eq!(index, vec![0, 2, 2, 1, 0]);
+        assert_eq!(valid, vec![1.0; 5]);
+        // One slot for two objects: the bigger object (5) is kept, 9 is ignored.
+        let (index, valid) = match_objects(&ids, &[0.5, 0.5].repeat(5), 2);
+        assert_eq!(index, vec![0, 1, 1, 0, 0]);
+        assert_eq!(valid, vec![1.0, 1.0, 1.0, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn token_ids_sample_the_mask_under_each_token_centre() {
+        // 4×4 mask, object 3 in the bottom-right 2×2 block; 2×2 tokens.
+        let mut mask = vec![0u8; 16];
+        for (x, y) in [(2, 2), (3, 2), (2, 3), (3, 3)] {
+            mask[y * 4 + x] = 3;
+        }
+        assert_eq!(token_ids(&mask, 4, 4, 2), vec![0, 0, 0, 3]);
+    }
 
     #[test]
     fn mask_loss_weights_split_evenly_between_background_and_objects() {
