@@ -72,15 +72,17 @@ demo: build
 
 # The default model's recipe (README, "The default model"): 400 training and 100 held-out
 # clevr567 scenes at 64²; a model with slot frames at the attention centroids, a locality
-# bound, 6 Fourier frequencies on the rays and a zero background latent; stage 1 (2,400 steps)
+# bound, 6 Fourier frequencies on the rays and a zero background latent; stage 1 (2,250 steps)
 # with weak mask supervision of the compositor, stage 2 (from stage 1, up to MODEL_STEPS) adds
-# weak mask supervision of the slot attention. Re-running `make model` resumes from the
+# weak mask supervision of the slot attention, its learning rate constant up to MODEL_DECAY and
+# then decaying (half cosine) to 3e-5 at MODEL_STEPS. Re-running `make model` resumes from the
 # checkpoints in $(MODEL_RUN) (a stopped run loses nothing; stage 1 is skipped once stage 2
 # has started); the result is evaluated on the
 # held-out scenes ($(MODEL_RUN)/eval.json), plotted ($(MODEL_RUN)/training.png) and copied to
 # models/default.safetensors.
 MODEL_RUN ?= out/model
-MODEL_STEPS ?= 100000
+MODEL_STEPS ?= 56000
+MODEL_DECAY ?= 44000
 MODEL_FLAGS := --lr 3e-4 --mask-weight 0.1 --object-fraction 0.2 --eval-every 1000 \
   --eval-scenes 8 --checkpoint-every 250 --eval-data $(MODEL_RUN)/data/test
 model: build
@@ -89,11 +91,12 @@ model: build
 	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
 	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
 	$(RELEASE)/colf-train --data $(MODEL_RUN)/data/train --out $(MODEL_RUN)/stage1.safetensors \
-	  --steps 2400 --warmup 500 --seed 9 $(MODEL_FLAGS) \
+	  --steps 2250 --warmup 500 --seed 9 $(MODEL_FLAGS) \
 	  $(if $(wildcard $(MODEL_RUN)/stage1.safetensors.ckpt),--resume,--zero-background \
 	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
 	$(RELEASE)/colf-train --data $(MODEL_RUN)/data/train --out $(MODEL_RUN)/model.safetensors \
-	  --steps $(MODEL_STEPS) --warmup 200 --seed 10 $(MODEL_FLAGS) --attention-mask-weight 0.1 \
+	  --steps $(MODEL_STEPS) --warmup 200 --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 10 \
+	  $(MODEL_FLAGS) --attention-mask-weight 0.1 \
 	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \

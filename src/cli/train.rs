@@ -92,6 +92,16 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 500, value_name = "N")]
     pub warmup: u64,
 
+    /// Cosine decay of the learning rate from --lr at step N down to --final-lr at --steps
+    /// (without it the rate stays constant after the warm-up). A step, not a fraction, so that a
+    /// run resumed with more --steps keeps the rates it already used.
+    #[arg(long, value_name = "N")]
+    pub decay_from: Option<u64>,
+
+    /// Learning rate reached at --steps when --decay-from is given.
+    #[arg(long, default_value_t = 3e-5, value_name = "LR")]
+    pub final_lr: f64,
+
     /// Weight of an L1 colour loss added to the L2 loss.
     #[arg(long, default_value_t = 0.0, value_name = "W")]
     pub l1_weight: f64,
@@ -245,6 +255,8 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         slots: args.slots,
         lr: args.lr,
         warmup: args.warmup,
+        decay_from: args.decay_from,
+        final_lr: args.final_lr,
         l1_weight: args.l1_weight,
         latent_weight: args.latent_weight,
         mask_weight: args.mask_weight,

@@ -24,6 +24,24 @@ pub struct Curves {
     pub eval: Vec<(f64, f64, f64)>,
 }
 
+impl Curves {
+    /// Drops the records of steps ≥ `step`: a resumed run logs again the steps after its last
+    /// checkpoint, and the later records are the ones the run continued from.
+    fn truncate_from(&mut self, step: f64) {
+        let keep = self.step.partition_point(|&s| s < step);
+        for series in [
+            &mut self.step,
+            &mut self.loss,
+            &mut self.psnr,
+            &mut self.obj_psnr,
+            &mut self.fg_share,
+            &mut self.fg_ari,
+        ] {
+            series.truncate(keep);
+        }
+    }
+}
+
 /// Parses a JSON-lines training log (`name` is used in errors).
 pub fn read_log(text: &str, name: &str) -> Result<Curves> {
     let mut c = Curves::default();
@@ -45,9 +63,12 @@ pub fn read_log(text: &str, name: &str) -> Result<Curves> {
                     .and_then(serde_json::Value::as_f64)
                     .unwrap_or(f64::NAN)
             };
+            let keep = c.eval.partition_point(|e| e.0 < step);
+            c.eval.truncate(keep);
             c.eval.push((step, get("psnr"), get("fg_ari")));
             continue;
         }
+        c.truncate_from(step);
         c.step.push(step);
         c.loss.push(num("loss"));
         c.psnr.push(num("psnr"));
@@ -110,7 +131,7 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
         let panels = root.split_evenly((2, 2));
         let steps = (c.step[0], c.step[c.step.len() - 1].max(c.step[0] + 1.0));
         let window = (c.step.len() / 50).max(1);
-        let faint = |color: RGBColor| color.mix(0.25);
+        let faint = |color: RGBColor| color.mix(0.12);
         let panel = |area: &DrawingArea<BitMapBackend, plotters::coord::Shift>,
                      title: &str,
                      series: &[(&str, &[f64], RGBColor)],
@@ -136,9 +157,10 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
             chart
                 .configure_mesh()
                 .x_desc("step")
+                .x_label_formatter(&|x| format!("{x:.0}"))
                 .y_label_formatter(&|y| {
                     if log_y {
-                        format!("1e{y:.1}")
+                        format!("{:.3}", 10f64.powf(*y))
                     } else {
                         format!("{y:.2}")
                     }
@@ -147,10 +169,14 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
                 .draw()
                 .map_err(|e| anyhow!("plot: {e}"))?;
             for ((label, _, color), values) in series.iter().zip(&transformed) {
+                // At most ~1,500 raw points: tens of thousands of overdrawn faint lines add
+                // up to a solid band that hides the trend.
+                let stride = (c.step.len() / 1500).max(1);
                 let raw = c
                     .step
                     .iter()
                     .zip(values)
+                    .step_by(stride)
                     .filter(|(_, v)| v.is_finite())
                     .map(|(s, v)| (*s, *v));
                 chart
@@ -226,6 +252,7 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
             chart
                 .configure_mesh()
                 .x_desc("step")
+                .x_label_formatter(&|x| format!("{x:.0}"))
                 .label_style(("sans-serif", 11))
                 .draw()
                 .map_err(|e| anyhow!("plot: {e}"))?;
@@ -237,11 +264,18 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
                     .map(|(s, y)| (*s, y * scale))
                     .collect()
             };
-            for (values, scale, color) in [(&eval_psnr, 1.0, BLUE), (&eval_ari, 40.0, BLACK)] {
+            for (label, values, scale, color) in [
+                ("novel-view PSNR", &eval_psnr, 1.0, BLUE),
+                ("FG-ARI x 40", &eval_ari, 40.0, BLACK),
+            ] {
                 let points = pts(values, scale);
                 chart
                     .draw_series(LineSeries::new(points.clone(), color.stroke_width(2)))
-                    .map_err(|e| anyhow!("plot: {e}"))?;
+                    .map_err(|e| anyhow!("plot: {e}"))?
+                    .label(label)
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2))
+                    });
                 chart
                     .draw_series(
                         points
@@ -250,6 +284,14 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
                     )
                     .map_err(|e| anyhow!("plot: {e}"))?;
             }
+            chart
+                .configure_series_labels()
+                .position(SeriesLabelPosition::LowerRight)
+                .label_font(("sans-serif", 11))
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| anyhow!("plot: {e}"))?;
         }
         root.present().map_err(|e| anyhow!("plot: {e}"))?;
     }
@@ -279,6 +321,16 @@ mod tests {
                    {\"step\":2,\"eval\":{\"psnr\":20.0,\"fg_ari\":0.3}}\n";
         let c = read_log(log, "log").unwrap();
         assert_eq!(c.step, vec![0.0, 1.0]);
+        // A resumed run repeats step 1 and 2: the later records win.
+        let resumed = format!(
+            "{log}{{\"step\":1,\"loss\":0.4,\"psnr\":7.0}}\n{{\"step\":2,\"loss\":0.3}}\n\
+             {{\"step\":2,\"eval\":{{\"psnr\":21.0}}}}\n"
+        );
+        let r = read_log(&resumed, "log").unwrap();
+        assert_eq!(r.step, vec![0.0, 1.0, 2.0]);
+        assert_eq!(r.loss, vec![1.0, 0.4, 0.3]);
+        assert_eq!(r.eval.len(), 1);
+        assert_eq!(r.eval[0].1, 21.0);
         assert!(c.obj_psnr[0].is_nan());
         assert_eq!(c.eval, vec![(2.0, 20.0, 0.3)]);
         let png = plot_png(&c, 400, 300).unwrap();

@@ -22,8 +22,23 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
+/// The learning rate of step `step`: linear warm-up over `opts.warmup` steps, then constant, or,
+/// from `opts.decay_from` on, a half cosine from `opts.lr` down to `opts.final_lr` at `opts.steps`.
+pub fn learning_rate(opts: &TrainOptions, step: u64) -> f64 {
+    let warm = opts.warmup.max(1) as f64;
+    let warmed = opts.lr * ((step + 1) as f64 / warm).min(1.0);
+    match opts.decay_from {
+        Some(start) if step >= start && opts.steps > start => {
+            let progress = ((step - start) as f64 / (opts.steps - start) as f64).min(1.0);
+            let cosine = 0.5 * (1.0 + (std::f64::consts::PI * progress).cos());
+            opts.final_lr + (warmed - opts.final_lr) * cosine
+        }
+        _ => warmed,
+    }
+}
+
 /// Everything a training run is configured by (stored in its checkpoints).
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct TrainOptions {
     /// Training data (colf or uORF layout).
     pub data: PathBuf,
@@ -43,6 +58,14 @@ pub struct TrainOptions {
     pub lr: f64,
     /// Linear learning-rate warm-up steps.
     pub warmup: u64,
+    /// Cosine decay of the learning rate from `lr` at this step to `final_lr` at `steps`
+    /// (None: constant after the warm-up). A step, not a fraction, so that a run resumed with a
+    /// larger `steps` keeps the rates it already used.
+    #[serde(default)]
+    pub decay_from: Option<u64>,
+    /// Learning rate reached at `steps` when `decay_from` is set.
+    #[serde(default)]
+    pub final_lr: f64,
     pub l1_weight: f64,
     /// Weight of the mean squared foreground latent.
     pub latent_weight: f64,
@@ -228,8 +251,7 @@ impl Trainer {
     }
 
     fn learning_rate(&self) -> f64 {
-        let warm = self.opts.warmup.max(1) as f64;
-        self.opts.lr * ((self.step + 1) as f64 / warm).min(1.0)
+        learning_rate(&self.opts, self.step)
     }
 
     /// One optimisation step (a non-finite loss skips the update and is counted).
@@ -643,6 +665,26 @@ fn ray_metrics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn learning_rate_warms_up_then_decays_by_a_half_cosine() {
+        let mut opts = TrainOptions {
+            lr: 1e-3,
+            warmup: 10,
+            steps: 100,
+            ..TrainOptions::default()
+        };
+        assert!((learning_rate(&opts, 4) - 5e-4).abs() < 1e-12);
+        assert_eq!(learning_rate(&opts, 99), 1e-3);
+        opts.decay_from = Some(50);
+        opts.final_lr = 1e-4;
+        assert_eq!(learning_rate(&opts, 49), 1e-3);
+        assert_eq!(learning_rate(&opts, 50), 1e-3);
+        assert!((learning_rate(&opts, 75) - 5.5e-4).abs() < 1e-12);
+        assert!((learning_rate(&opts, 100) - 1e-4).abs() < 1e-12);
+        // Steps past the end (a resumed run's `steps` lowered) stay at the final rate.
+        assert!((learning_rate(&opts, 500) - 1e-4).abs() < 1e-12);
+    }
 
     #[test]
     fn objects_match_the_slots_that_hold_them() {
