@@ -56,13 +56,13 @@ demo: build
 	@mkdir -p $(DEMO)
 	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q
 	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
-	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.02 -o $(DEMO)/scene.codes
+	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.003 -o $(DEMO)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json
 	$(RELEASE)/colf-edit examples/demo-edits.json $(DEMO)/scene.codes -o $(DEMO)/edited.codes
 	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO)/orbit.json
 	$(RELEASE)/colf-render $(DEMO)/scene.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/orbit --masks -q
 	$(RELEASE)/colf-render $(DEMO)/edited.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/edited --masks -q
-	$(RELEASE)/colf-sheet --cols 5 -o $(DEMO)/sheet.png \
+	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(DEMO)/sheet.png \
 	  $(DEMO)/data/scene_00000/view_000.png $(DEMO)/orbit/frame_000{0,1,2,3}.png \
 	  $(DEMO)/data/scene_00000/view_000.mask.png $(DEMO)/orbit/frame_000{0,1,2,3}.mask.png \
 	  - $(DEMO)/edited/frame_000{0,1,2,3}.png \
@@ -72,32 +72,37 @@ demo: build
 
 # The default model's recipe (README, "The default model"): 400 training and 100 held-out
 # clevr567 scenes at 64²; a model with slot frames at the attention centroids, a locality
-# bound, 6 Fourier frequencies on the rays and a zero background latent; stage 1 (2,250 steps)
-# with weak mask supervision of the compositor, stage 2 (from stage 1, up to MODEL_STEPS) adds
-# weak mask supervision of the slot attention, its learning rate constant up to MODEL_DECAY and
-# then decaying (half cosine) to 3e-5 at MODEL_STEPS. Re-running `make model` resumes from the
-# checkpoints in $(MODEL_RUN) (a stopped run loses nothing; stage 1 is skipped once stage 2
-# has started); the result is evaluated on the
-# held-out scenes ($(MODEL_RUN)/eval.json), plotted ($(MODEL_RUN)/training.png) and copied to
-# models/default.safetensors.
+# bound, 6 Fourier frequencies on the rays and a zero background latent. Stage 1 (2,250 steps):
+# weak mask supervision of the compositor; stage 2 (from stage 1, 39,250 steps): adds weak mask
+# supervision of the slot attention; stage 3 (stage 2's checkpoint, optimizer state included,
+# continued to MODEL_STEPS): no mask losses at all, so the foreground slots may also take what
+# the masks call background (the shadows their objects cast), learning rate constant up to
+# MODEL_DECAY, then decaying (half cosine) to 3e-5. Re-running `make model` resumes from the
+# checkpoints in $(MODEL_RUN) (a stopped run loses nothing; finished stages are skipped); the
+# result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json), plotted
+# ($(MODEL_RUN)/training.png) and copied to models/default.safetensors.
 MODEL_RUN ?= out/model
-MODEL_STEPS ?= 56000
-MODEL_DECAY ?= 44000
-MODEL_FLAGS := --lr 3e-4 --mask-weight 0.1 --object-fraction 0.2 --eval-every 1000 \
-  --eval-scenes 8 --checkpoint-every 250 --eval-data $(MODEL_RUN)/data/test
+MODEL_STEPS ?= 58000
+MODEL_DECAY ?= 46000
+MODEL_DATA := --data $(MODEL_RUN)/data/train --eval-data $(MODEL_RUN)/data/test --eval-every 1000 \
+  --eval-scenes 8 --checkpoint-every 250 --lr 3e-4 --object-fraction 0.2
 model: build
 	@mkdir -p $(MODEL_RUN)
 	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
 	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
-	$(RELEASE)/colf-train --data $(MODEL_RUN)/data/train --out $(MODEL_RUN)/stage1.safetensors \
-	  --steps 2250 --warmup 500 --seed 9 $(MODEL_FLAGS) \
+	test -f $(MODEL_RUN)/stage2.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/stage1.safetensors \
+	  --steps 2250 --warmup 500 --seed 9 --mask-weight 0.1 \
 	  $(if $(wildcard $(MODEL_RUN)/stage1.safetensors.ckpt),--resume,--zero-background \
 	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
-	$(RELEASE)/colf-train --data $(MODEL_RUN)/data/train --out $(MODEL_RUN)/model.safetensors \
-	  --steps $(MODEL_STEPS) --warmup 200 --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 10 \
-	  $(MODEL_FLAGS) --attention-mask-weight 0.1 \
-	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/stage2.safetensors \
+	  --steps 39250 --warmup 200 --seed 10 --mask-weight 0.1 --attention-mask-weight 0.1 \
+	  $(if $(wildcard $(MODEL_RUN)/stage2.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	cp $(MODEL_RUN)/stage2.safetensors.ckpt $(MODEL_RUN)/model.safetensors.ckpt
+	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/model.safetensors --resume \
+	  --steps $(MODEL_STEPS) --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 11
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json

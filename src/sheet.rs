@@ -47,6 +47,21 @@ pub fn load_tile(bytes: &[u8], name: &str, as_labels: bool) -> Result<RgbImage32
     })
 }
 
+/// `image` enlarged `factor` times by pixel replication (so small renders and label masks stay
+/// crisp on a sheet).
+pub fn enlarge(image: &RgbImage32, factor: u32) -> RgbImage32 {
+    let (w, h) = (image.w * factor, image.h * factor);
+    let mut data = Vec::with_capacity(3 * (w * h) as usize);
+    for y in 0..h {
+        let row = (y / factor) * image.w;
+        for x in 0..w {
+            let at = 3 * (row + x / factor) as usize;
+            data.extend_from_slice(&image.data[at..at + 3]);
+        }
+    }
+    RgbImage32 { w, h, data }
+}
+
 /// Tiles `tiles` row-major into `cols` columns with `gap` pixels of white between them; tiles of
 /// different sizes are placed top-left in cells of the largest size. `None` leaves a cell empty.
 pub fn tile(tiles: &[Option<RgbImage32>], cols: usize, gap: u32) -> Result<RgbImage32> {
@@ -93,6 +108,21 @@ mod tests {
         assert_eq!(px(4, 1), &[1.0, 1.0, 1.0]); // empty cell
         assert_eq!(px(1, 3), &[1.0, 0.0, 0.0]); // third tile, second row
         assert_eq!(px(0, 0), &[1.0, 1.0, 1.0]); // gap
+    }
+
+    #[test]
+    fn enlarging_replicates_pixels() {
+        let image = RgbImage32 {
+            w: 2,
+            h: 1,
+            data: vec![1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+        };
+        let big = enlarge(&image, 3);
+        assert_eq!((big.w, big.h), (6, 3));
+        let px = |x: u32, y: u32| &big.data[(3 * (y * big.w + x)) as usize..][..3];
+        assert_eq!(px(2, 2), &[1.0, 0.0, 0.0]);
+        assert_eq!(px(3, 0), &[0.0, 0.0, 1.0]);
+        assert_eq!(enlarge(&image, 1).data, image.data);
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! `colf-sheet`: tile PNGs into a contact sheet.
 
-use crate::sheet::{load_tile, tile};
+use crate::sheet::{enlarge, load_tile, tile};
 use anyhow::Result;
 use clap::Parser;
 
@@ -26,6 +26,11 @@ pub struct SheetArgs {
     #[arg(long, default_value_t = 4, value_name = "N")]
     pub cols: usize,
 
+    /// Enlarge every tile N times (pixel replication), e.g. 64² renders to 192².
+    #[arg(long, default_value_t = 1, value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..=16))]
+    pub scale: u32,
+
     /// Gap between cells, in pixels.
     #[arg(long, default_value_t = 4, value_name = "PX")]
     pub gap: u32,
@@ -45,7 +50,8 @@ pub fn run(args: &SheetArgs) -> Result<()> {
                 return Ok(None);
             }
             let bytes = crate::io::read_input(path, true)?;
-            load_tile(&bytes, path, path.ends_with(".mask.png")).map(Some)
+            let tile = load_tile(&bytes, path, path.ends_with(".mask.png"))?;
+            Ok(Some(enlarge(&tile, args.scale)))
         })
         .collect::<Result<Vec<_>>>()?;
     let sheet = tile(&tiles, args.cols, args.gap)?;
