@@ -405,25 +405,19 @@ impl FastRenderer {
                 if samples.is_some() {
                     bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray)");
                 }
-                out.rgb
-                    .par_chunks_mut(3 * LF_CHUNK)
-                    .zip(out.weights.par_chunks_mut(s * LF_CHUNK))
-                    .zip(out.ordering.par_chunks_mut(s * LF_CHUNK))
-                    .enumerate()
-                    .try_for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
-                        let start = ci * LF_CHUNK;
-                        let n = rgb.len() / 3;
-                        self.lf_chunk(
-                            lf,
-                            scratch,
-                            &origins[start..start + n],
-                            &dirs[start..start + n],
-                            active.map(|a| &a[start * s..(start + n) * s]),
-                            rgb,
-                            w,
-                            ord,
-                        )
-                    })?;
+                par_ray_chunks(&mut out, LF_CHUNK, |scratch, start, rgb, w, ord| {
+                    let n = rgb.len() / 3;
+                    self.lf_chunk(
+                        lf,
+                        scratch,
+                        &origins[start..start + n],
+                        &dirs[start..start + n],
+                        active.map(|a| &a[start * s..(start + n) * s]),
+                        rgb,
+                        w,
+                        ord,
+                    )
+                })?;
             }
             Kind::Volumetric(vol) => {
                 if active.is_some() {
@@ -434,25 +428,20 @@ impl FastRenderer {
                     bail!("--samples must be in 1..=4096, not {n_samples}");
                 }
                 let chunk = (VOL_POINTS / n_samples).max(1);
-                out.rgb
-                    .par_chunks_mut(3 * chunk)
-                    .zip(out.weights.par_chunks_mut(s * chunk))
-                    .zip(out.ordering.par_chunks_mut(s * chunk))
-                    .enumerate()
-                    .for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
-                        let start = ci * chunk;
-                        let n = rgb.len() / 3;
-                        self.vol_chunk(
-                            vol,
-                            scratch,
-                            &origins[start..start + n],
-                            &dirs[start..start + n],
-                            n_samples,
-                            rgb,
-                            w,
-                            ord,
-                        );
-                    });
+                par_ray_chunks(&mut out, chunk, |scratch, start, rgb, w, ord| {
+                    let n = rgb.len() / 3;
+                    self.vol_chunk(
+                        vol,
+                        scratch,
+                        &origins[start..start + n],
+                        &dirs[start..start + n],
+                        n_samples,
+                        rgb,
+                        w,
+                        ord,
+                    );
+                    Ok(())
+                })?;
             }
         }
         Ok(out)
@@ -905,4 +894,21 @@ impl VolumetricHost {
             scene_scale: cfg.scene_scale,
         })
     }
+}
+
+/// Runs `task(scratch, first_ray, rgb, weights, ordering)` on the chunks of `chunk` rays of
+/// `out`, in parallel, each with its own scratch buffers; the first error stops the rest.
+fn par_ray_chunks<F>(out: &mut RayOutput, chunk: usize, task: F) -> Result<()>
+where
+    F: Fn(&mut Scratch, usize, &mut [f32], &mut [f32], &mut [f32]) -> Result<()> + Sync + Send,
+{
+    let s = out.fields;
+    out.rgb
+        .par_chunks_mut(3 * chunk)
+        .zip(out.weights.par_chunks_mut(s * chunk))
+        .zip(out.ordering.par_chunks_mut(s * chunk))
+        .enumerate()
+        .try_for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
+            task(scratch, ci * chunk, rgb, w, ord)
+        })
 }

@@ -263,6 +263,18 @@ pub struct RayOutput {
     pub fields: usize,
 }
 
+impl RayOutput {
+    /// Empty buffers with room for `rays` rays of `fields` fields, filled by appending.
+    fn with_capacity(rays: usize, fields: usize) -> RayOutput {
+        RayOutput {
+            rgb: Vec::with_capacity(3 * rays),
+            weights: Vec::with_capacity(fields * rays),
+            ordering: Vec::with_capacity(fields * rays),
+            fields,
+        }
+    }
+}
+
 /// A loaded model.
 pub struct Colf {
     model: ColfModel,
@@ -564,12 +576,7 @@ impl Colf {
             .fields
             .as_ref()
             .ok_or_else(|| anyhow!("slots were prepared for another kind of model"))?;
-        let mut out = RayOutput {
-            rgb: Vec::with_capacity(3 * r),
-            weights: Vec::with_capacity(s * r),
-            ordering: Vec::with_capacity(s * r),
-            fields: s,
-        };
+        let mut out = RayOutput::with_capacity(r, s);
         let chunk = self.rays_per_chunk(s);
         for start in (0..r).step_by(chunk) {
             let end = (start + chunk).min(r);
@@ -621,12 +628,7 @@ impl Colf {
         let flat: Vec<f32> = prepared.latents.iter().flatten().copied().collect();
         let latents = Tensor::from_vec(flat, (s, d), &self.device)?;
         let r = origins.len();
-        let mut out = RayOutput {
-            rgb: Vec::with_capacity(3 * r),
-            weights: Vec::with_capacity(s * r),
-            ordering: Vec::with_capacity(s * r),
-            fields: s,
-        };
+        let mut out = RayOutput::with_capacity(r, s);
         let chunk = self.rays_per_chunk(s);
         for start in (0..r).step_by(chunk) {
             let end = (start + chunk).min(r);
