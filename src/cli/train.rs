@@ -125,6 +125,12 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0.0, value_name = "F")]
     pub object_fraction: f64,
 
+    /// Mask losses (--mask-weight, --attention-mask-weight) ignore background pixels within PX
+    /// pixels of an object: masks call an object's shadow background, but only the object's slot
+    /// can draw it when the background cannot depend on the image (--zero-background).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub mask_margin: usize,
+
     /// Render the background from a zero latent, so it cannot depend on the image (the paper's
     /// choice for CLEVR). A fresh model's setting, stored in its config (so encode and render
     /// do the same); with --init or --resume the model's own setting holds.
@@ -262,6 +268,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         mask_weight: args.mask_weight,
         attention_mask_weight: args.attention_mask_weight,
         object_fraction: args.object_fraction,
+        mask_margin: args.mask_margin,
         zero_background: args.zero_background,
         config_overrides: args.config_overrides.clone(),
         seed: args.seed,

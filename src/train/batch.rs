@@ -17,6 +17,19 @@ pub struct RaySampling {
     pub rays_per_view: usize,
     /// Share of each view's rays drawn from ground-truth object pixels (needs masks; 0 = uniform).
     pub object_fraction: f64,
+    /// Background pixels within this many pixels of an object are marked `near_object`.
+    pub mask_margin: usize,
+}
+
+/// Whether pixel (x, y) of a w×h id mask is background with an object pixel within `margin`
+/// pixels (Chebyshev distance).
+pub fn near_object(mask: &[u8], w: usize, h: usize, x: usize, y: usize, margin: usize) -> bool {
+    if margin == 0 || mask[y * w + x] != 0 {
+        return false;
+    }
+    let (x0, x1) = (x.saturating_sub(margin), (x + margin).min(w - 1));
+    let (y0, y1) = (y.saturating_sub(margin), (y + margin).min(h - 1));
+    (y0..=y1).any(|yy| mask[yy * w + x0..=yy * w + x1].iter().any(|&id| id != 0))
 }
 
 /// One scene's part of a batch.
@@ -35,6 +48,9 @@ pub struct SceneSample {
     pub targets: Vec<f32>,
     /// Ground-truth object id per ray (0 = background; all 0 without masks).
     pub ids: Vec<u8>,
+    /// Per ray: a background pixel within `RaySampling::mask_margin` pixels of an object (the
+    /// band where objects cast shadows; mask losses leave it to the colour loss).
+    pub near_object: Vec<bool>,
     pub has_masks: bool,
 }
 
@@ -72,6 +88,7 @@ pub fn sample_scene(
         dirs: Vec::with_capacity(total),
         targets: Vec::with_capacity(3 * total),
         ids: Vec::with_capacity(total),
+        near_object: Vec::with_capacity(total),
         has_masks,
     };
     for &v in &views {
@@ -100,7 +117,26 @@ pub fn sample_scene(
                 .targets
                 .extend_from_slice(&view.image.data[3 * p..3 * p + 3]);
             sample.ids.push(view.mask.as_ref().map_or(0, |m| m[p]));
+            sample.near_object.push(view.mask.as_ref().is_some_and(|m| {
+                near_object(m, w, h, i as usize, j as usize, sampling.mask_margin)
+            }));
         }
     }
     Ok(sample)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn near_object_marks_the_background_band_around_objects() {
+        // 5×1 mask with an object at x = 2.
+        let mask = [0u8, 0, 4, 0, 0];
+        let near: Vec<bool> = (0..5).map(|x| near_object(&mask, 5, 1, x, 0, 1)).collect();
+        assert_eq!(near, vec![false, true, false, true, false]);
+        let wide: Vec<bool> = (0..5).map(|x| near_object(&mask, 5, 1, x, 0, 2)).collect();
+        assert_eq!(wide, vec![true, true, false, true, true]);
+        assert!((0..5).all(|x| !near_object(&mask, 5, 1, x, 0, 0)));
+    }
 }

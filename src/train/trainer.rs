@@ -5,7 +5,7 @@
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
 use super::adam::{Adam, AdamConfig};
-use super::batch::{sample_scene, RaySampling, SceneSample};
+use super::batch::{near_object, sample_scene, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
@@ -76,6 +76,11 @@ pub struct TrainOptions {
     pub attention_mask_weight: f64,
     /// Share of rays drawn from object pixels (uses masks).
     pub object_fraction: f64,
+    /// Mask losses ignore background pixels (rays and tokens) within this many pixels of an
+    /// object: masks call an object's shadow background, but a background that cannot depend on
+    /// the image cannot draw it, so only the object's slot can.
+    #[serde(default)]
+    pub mask_margin: usize,
     /// Fresh models only: render the background from a zero latent, so it cannot depend on the
     /// image (the paper's choice for CLEVR); stored in the model's config.
     pub zero_background: bool,
@@ -263,6 +268,7 @@ impl Trainer {
             views: opts.views_per_scene,
             rays_per_view: opts.rays_per_view,
             object_fraction: opts.object_fraction,
+            mask_margin: opts.mask_margin,
         };
         let samples: Vec<SceneSample> = (0..opts.batch_scenes)
             .map(|_| {
@@ -343,9 +349,15 @@ impl Trainer {
                     .to_vec1::<f32>()?;
                 let (mut index, mut valid) = (Vec::new(), Vec::new());
                 for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
-                    let ids = token_ids(mask, sample.input_w, sample.input_h, g);
+                    let (ids, near) =
+                        token_ids(mask, sample.input_w, sample.input_h, g, opts.mask_margin);
                     let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
-                    let (i, v) = match_objects(&ids, scene, s);
+                    let (i, mut v) = match_objects(&ids, scene, s);
+                    for (valid, near) in v.iter_mut().zip(near) {
+                        if near {
+                            *valid = 0.0;
+                        }
+                    }
                     index.extend(i);
                     valid.extend(v);
                 }
@@ -511,7 +523,12 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     let mut index = Vec::with_capacity(samples.len() * r);
     let mut valid = Vec::with_capacity(samples.len() * r);
     for (bi, sample) in samples.iter().enumerate() {
-        let (i, v) = match_objects(&sample.ids, &weights[bi * r * s..(bi + 1) * r * s], s);
+        let (i, mut v) = match_objects(&sample.ids, &weights[bi * r * s..(bi + 1) * r * s], s);
+        for (valid, &near) in v.iter_mut().zip(&sample.near_object) {
+            if near {
+                *valid = 0.0;
+            }
+        }
         index.extend(i);
         valid.extend(v);
     }
@@ -560,16 +577,17 @@ fn match_objects(ids: &[u8], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) 
 }
 
 /// Object ids of a token grid (g×g, row-major) from a w×h mask: each token takes the id of
-/// the pixel under its centre.
-fn token_ids(mask: &[u8], w: usize, h: usize, g: usize) -> Vec<u8> {
+/// the pixel under its centre; and whether that pixel is background within `margin` pixels
+/// of an object.
+fn token_ids(mask: &[u8], w: usize, h: usize, g: usize, margin: usize) -> (Vec<u8>, Vec<bool>) {
     (0..g * g)
         .map(|t| {
             let (tx, ty) = (t % g, t / g);
-            let x = (((tx as f64 + 0.5) / g as f64) * w as f64) as usize;
-            let y = (((ty as f64 + 0.5) / g as f64) * h as f64) as usize;
-            mask[y.min(h - 1) * w + x.min(w - 1)]
+            let x = ((((tx as f64 + 0.5) / g as f64) * w as f64) as usize).min(w - 1);
+            let y = ((((ty as f64 + 0.5) / g as f64) * h as f64) as usize).min(h - 1);
+            (mask[y * w + x], near_object(mask, w, h, x, y, margin))
         })
-        .collect()
+        .unzip()
 }
 
 /// Cross-entropy of labels `index` under log-probabilities `log_p` [B, N, S], each element
@@ -713,7 +731,15 @@ mod tests {
         for (x, y) in [(2, 2), (3, 2), (2, 3), (3, 3)] {
             mask[y * 4 + x] = 3;
         }
-        assert_eq!(token_ids(&mask, 4, 4, 2), vec![0, 0, 0, 3]);
+        assert_eq!(token_ids(&mask, 4, 4, 2, 0).0, vec![0, 0, 0, 3]);
+        // Token centres are pixels (1, 1), (3, 1), (1, 3) and (3, 3): the three background
+        // ones touch the object diagonally or sideways, so with a 1-pixel margin they are near
+        // it; with none, nothing is.
+        assert_eq!(
+            token_ids(&mask, 4, 4, 2, 1).1,
+            vec![true, true, true, false]
+        );
+        assert_eq!(token_ids(&mask, 4, 4, 2, 0).1, vec![false; 4]);
     }
 
     #[test]
