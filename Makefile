@@ -73,36 +73,30 @@ demo: build
 # The default model's recipe (README, "The default model"): 400 training and 100 held-out
 # clevr567 scenes at 64²; a model with slot frames at the attention centroids, a locality
 # bound, 6 Fourier frequencies on the rays and a zero background latent. Stage 1 (2,250 steps):
-# weak mask supervision of the compositor; stage 2 (from stage 1, 39,250 steps): adds weak mask
-# supervision of the slot attention; stage 3 (stage 2's checkpoint, optimizer state included,
-# continued to MODEL_STEPS): no mask losses at all, so the foreground slots may also take what
-# the masks call background (the shadows their objects cast), learning rate constant up to
-# MODEL_DECAY, then decaying (half cosine) to 3e-5. Re-running `make model` resumes from the
-# checkpoints in $(MODEL_RUN) (a stopped run loses nothing; finished stages are skipped); the
+# weak mask supervision of the compositor; stage 2 (from stage 1, to MODEL_STEPS): adds weak
+# mask supervision of the slot attention, learning rate constant up to MODEL_DECAY, then
+# decaying (half cosine) to 3e-5. Re-running `make model` resumes from the checkpoints in
+# $(MODEL_RUN) (a stopped run loses nothing; stage 1 is skipped once stage 2 has started); the
 # result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json), plotted
 # ($(MODEL_RUN)/training.png) and copied to models/default.safetensors.
 MODEL_RUN ?= out/model
-MODEL_STEPS ?= 58000
-MODEL_DECAY ?= 46000
-MODEL_DATA := --data $(MODEL_RUN)/data/train --eval-data $(MODEL_RUN)/data/test --eval-every 1000 \
-  --eval-scenes 8 --checkpoint-every 250 --lr 3e-4 --object-fraction 0.2
+MODEL_STEPS ?= 54000
+MODEL_DECAY ?= 45000
+MODEL_FLAGS := --data $(MODEL_RUN)/data/train --eval-data $(MODEL_RUN)/data/test --eval-every 1000 \
+  --eval-scenes 8 --checkpoint-every 250 --lr 3e-4 --object-fraction 0.2 --mask-weight 0.1
 model: build
 	@mkdir -p $(MODEL_RUN)
 	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
 	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
-	test -f $(MODEL_RUN)/stage2.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/stage1.safetensors \
-	  --steps 2250 --warmup 500 --seed 9 --mask-weight 0.1 \
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(MODEL_FLAGS) --out $(MODEL_RUN)/stage1.safetensors \
+	  --steps 2250 --warmup 500 --seed 9 \
 	  $(if $(wildcard $(MODEL_RUN)/stage1.safetensors.ckpt),--resume,--zero-background \
 	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/stage2.safetensors \
-	  --steps 39250 --warmup 200 --seed 10 --mask-weight 0.1 --attention-mask-weight 0.1 \
-	  $(if $(wildcard $(MODEL_RUN)/stage2.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
-	cp $(MODEL_RUN)/stage2.safetensors.ckpt $(MODEL_RUN)/model.safetensors.ckpt
-	$(RELEASE)/colf-train $(MODEL_DATA) --out $(MODEL_RUN)/model.safetensors --resume \
-	  --steps $(MODEL_STEPS) --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 11
+	$(RELEASE)/colf-train $(MODEL_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	  --steps $(MODEL_STEPS) --warmup 200 --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 10 \
+	  --attention-mask-weight 0.1 \
+	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json

@@ -13,7 +13,7 @@
 //! plot (`--png`: speed-up against PSNR loss), and prints the table.
 //!
 //! Usage: `tradeoff --model M [--scenes 5] [--size 128] [--slots 7] [--eps 0,0.001,…]
-//!         [--prune 0.02,0.05] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]`
+//!         [--prune 0.003,0.01] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]`
 
 use anyhow::{bail, Context, Result};
 use colf::camera::{Cameras, Frame};
@@ -45,7 +45,7 @@ fn parse_args() -> Result<Args> {
         size: 128,
         slots: 7,
         eps: vec![0.0, 0.001, 0.003, 0.01, 0.03, 0.1],
-        prune: vec![0.02, 0.05],
+        prune: vec![0.003, 0.01],
         reps: 3,
         md: None,
         png: None,
@@ -367,7 +367,7 @@ fn main() -> Result<()> {
         "Model `{}` (identity `{identity}`), {} held-out clevr567 scenes (`colf-synth --split test \
 --seed 0 --size {}`), view 0 encoded with K = {} (`colf-encode --camera`), views 1–3 rendered: \
 {frames} frames. Exact render: {:.1} ms per frame, PSNR {:.2} dB against ground truth. Times are \
-medians of {} runs per frame on a 2-core machine shared with training runs (noisy: compare \
+medians of {} runs per frame on the 2-core development machine (other jobs make times noisy: compare \
 rows of one table, not tables). Mean slots kept: {}.\n\n",
         model_path.display(),
         args.scenes,

@@ -29,7 +29,7 @@ pub const COARSE_FACTOR: u32 = 4;
 /// upsampling; each step more widens it by one coarse sample on every side.
 pub const DILATE_BLOCKS: i64 = 1;
 /// The ε `--adaptive` uses without a value (chosen from the measurements in docs/tradeoff.md).
-pub const RECOMMENDED_EPS: f32 = 0.01;
+pub const RECOMMENDED_EPS: f32 = 0.03;
 
 /// What an adaptive render did, for logs and the trade-off measurements.
 #[derive(Clone, Debug, PartialEq)]

@@ -59,7 +59,10 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
             (s.slot_to_world.y_axis, camera.y_axis),
             (s.slot_to_world.z_axis, camera.z_axis),
         ] {
-            assert!(axis.abs_diff_eq(camera_axis, 1e-6), "{axis} vs {camera_axis}");
+            assert!(
+                axis.abs_diff_eq(camera_axis, 1e-6),
+                "{axis} vs {camera_axis}"
+            );
         }
         assert!((0.0..=1.0).contains(&s.mass));
         assert!(s.source.starts_with("view_000.png#"));

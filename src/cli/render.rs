@@ -25,7 +25,7 @@ at a time, so memory stays bounded whatever the image size or slot count and the
 depend on the number of threads.\n\n\
 Without --adaptive the render is exact. --adaptive [EPS] first renders the compositor weights \
 at 1/4 resolution, dilates each slot's weight map by one coarse pixel, and then evaluates a slot \
-at full resolution only where that weight exceeds EPS (default 0.01); the background is always \
+at full resolution only where that weight exceeds EPS (default 0.03); the background is always \
 evaluated. A slot left out of a pixel has weight 0 and ordering value +inf in the EXR. The \
 speed/accuracy trade is measured in docs/tradeoff.md.\n\n\
 A volumetric model (colf-train init --preset volumetric: the uORF-style baseline) is rendered \
@@ -68,8 +68,8 @@ pub struct RenderArgs {
 
     /// Adaptive rendering: render the compositor weights at 1/4 resolution first, then evaluate
     /// each slot at full resolution only where its dilated coarse weight exceeds EPS (the
-    /// background always). Bare --adaptive uses EPS = 0.01. Light-field models only.
-    #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.01")]
+    /// background always). Bare --adaptive uses EPS = 0.03. Light-field models only.
+    #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.03")]
     pub adaptive: Option<f32>,
 
     /// Samples per ray of a volumetric (baseline) model (default: the model's, 64 for the
@@ -162,4 +162,24 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bare_adaptive_uses_the_recommended_eps() {
+        let args = RenderArgs::try_parse_from([
+            "colf-render",
+            "c.codes",
+            "--cameras",
+            "t.json",
+            "--out",
+            "o",
+            "--adaptive",
+        ])
+        .unwrap();
+        assert_eq!(args.adaptive, Some(crate::render_adaptive::RECOMMENDED_EPS));
+    }
 }
