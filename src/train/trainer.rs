@@ -352,12 +352,7 @@ impl Trainer {
                     let (ids, near) =
                         token_ids(mask, sample.input_w, sample.input_h, g, opts.mask_margin);
                     let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
-                    let (i, mut v) = match_objects(&ids, scene, s);
-                    for (valid, near) in v.iter_mut().zip(near) {
-                        if near {
-                            *valid = 0.0;
-                        }
-                    }
+                    let (i, v) = match_objects(&ids, scene, s, Some(&near));
                     index.extend(i);
                     valid.extend(v);
                 }
@@ -523,12 +518,8 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     let mut index = Vec::with_capacity(samples.len() * r);
     let mut valid = Vec::with_capacity(samples.len() * r);
     for (bi, sample) in samples.iter().enumerate() {
-        let (i, mut v) = match_objects(&sample.ids, &weights[bi * r * s..(bi + 1) * r * s], s);
-        for (valid, &near) in v.iter_mut().zip(&sample.near_object) {
-            if near {
-                *valid = 0.0;
-            }
-        }
+        let scene = &weights[bi * r * s..(bi + 1) * r * s];
+        let (i, v) = match_objects(&sample.ids, scene, s, Some(&sample.near_object));
         index.extend(i);
         valid.extend(v);
     }
@@ -539,8 +530,13 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
 /// model's soft assignment of each element to the s fields (background first), row-major.
 /// Objects are matched to foreground fields by the Hungarian method on their summed weights;
 /// returns per element the target field and a 0/1 validity (objects beyond the slot count,
-/// the smallest ones, are left out).
-fn match_objects(ids: &[u8], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) {
+/// the smallest ones, are left out, and so are the elements `ignored` marks).
+fn match_objects(
+    ids: &[u8],
+    weights: &[f32],
+    s: usize,
+    ignored: Option<&[bool]>,
+) -> (Vec<u32>, Vec<f32>) {
     use pathfinding::prelude::{kuhn_munkres, Matrix};
     let mut objects: Vec<u8> = ids.iter().copied().filter(|&id| id > 0).collect();
     objects.sort_unstable();
@@ -568,7 +564,9 @@ fn match_objects(ids: &[u8], weights: &[f32], s: usize) -> (Vec<u32>, Vec<f32>) 
         }
     }
     ids.iter()
-        .map(|&id| match (id, assignment.get(&id)) {
+        .enumerate()
+        .map(|(e, &id)| match (id, assignment.get(&id)) {
+            _ if ignored.is_some_and(|ignored| ignored[e]) => (0, 0.0),
             (0, _) => (0, 1.0),
             (_, Some(&field)) => (field, 1.0),
             (_, None) => (0, 0.0),
@@ -715,11 +713,16 @@ mod tests {
             0.2, 0.7, 0.1, // object 9
             0.8, 0.1, 0.1, // background element
         ];
-        let (index, valid) = match_objects(&ids, &weights, 3);
+        let (index, valid) = match_objects(&ids, &weights, 3, None);
         assert_eq!(index, vec![0, 2, 2, 1, 0]);
         assert_eq!(valid, vec![1.0; 5]);
+        // Ignored elements (a background pixel next to an object) weigh nothing.
+        let ignored = [true, false, false, false, false];
+        let (index, valid) = match_objects(&ids, &weights, 3, Some(&ignored));
+        assert_eq!(index, vec![0, 2, 2, 1, 0]);
+        assert_eq!(valid, vec![0.0, 1.0, 1.0, 1.0, 1.0]);
         // One slot for two objects: the bigger object (5) is kept, 9 is ignored.
-        let (index, valid) = match_objects(&ids, &[0.5, 0.5].repeat(5), 2);
+        let (index, valid) = match_objects(&ids, &[0.5, 0.5].repeat(5), 2, None);
         assert_eq!(index, vec![0, 1, 1, 0, 0]);
         assert_eq!(valid, vec![1.0, 1.0, 1.0, 0.0, 1.0]);
     }
