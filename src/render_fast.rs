@@ -117,20 +117,10 @@ impl HostDense {
                 gemm::Parallelism::None,
             );
         }
-        // Two loops, not a branch per element, so each vectorises.
-        let rows_of_y = y.chunks_mut(y_rs).take(rows);
-        if relu {
-            for row in rows_of_y {
-                for (v, b) in row[..n].iter_mut().zip(bias) {
-                    let t = *v + b;
-                    *v = if t > 0.0 { t } else { 0.0 };
-                }
-            }
-        } else {
-            for row in rows_of_y {
-                for (v, b) in row[..n].iter_mut().zip(bias) {
-                    *v += b;
-                }
+        for row in y.chunks_mut(y_rs).take(rows) {
+            for (v, b) in row[..n].iter_mut().zip(bias) {
+                let t = *v + b;
+                *v = if relu { t.max(0.0) } else { t };
             }
         }
     }
@@ -405,19 +395,17 @@ impl FastRenderer {
                 if samples.is_some() {
                     bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray)");
                 }
-                par_ray_chunks(&mut out, LF_CHUNK, |scratch, start, rgb, w, ord| {
-                    let n = rgb.len() / 3;
-                    self.lf_chunk(
-                        lf,
-                        scratch,
-                        &origins[start..start + n],
-                        &dirs[start..start + n],
-                        active.map(|a| &a[start * s..(start + n) * s]),
-                        rgb,
-                        w,
-                        ord,
-                    )
-                })?;
+                par_ray_chunks(
+                    &mut out,
+                    LF_CHUNK,
+                    origins,
+                    dirs,
+                    |scratch, start, rays, out| {
+                        let n = rays.0.len();
+                        let active = active.map(|a| &a[start * s..(start + n) * s]);
+                        self.lf_chunk(lf, scratch, rays.0, rays.1, active, out.0, out.1, out.2)
+                    },
+                )?;
             }
             Kind::Volumetric(vol) => {
                 if active.is_some() {
@@ -428,18 +416,9 @@ impl FastRenderer {
                     bail!("--samples must be in 1..=4096, not {n_samples}");
                 }
                 let chunk = (VOL_POINTS / n_samples).max(1);
-                par_ray_chunks(&mut out, chunk, |scratch, start, rgb, w, ord| {
-                    let n = rgb.len() / 3;
-                    self.vol_chunk(
-                        vol,
-                        scratch,
-                        &origins[start..start + n],
-                        &dirs[start..start + n],
-                        n_samples,
-                        rgb,
-                        w,
-                        ord,
-                    );
+                par_ray_chunks(&mut out, chunk, origins, dirs, |scratch, _, rays, out| {
+                    let (rgb, w, ord) = out;
+                    self.vol_chunk(vol, scratch, rays.0, rays.1, n_samples, rgb, w, ord);
                     Ok(())
                 })?;
             }
@@ -896,11 +875,23 @@ impl VolumetricHost {
     }
 }
 
-/// Runs `task(scratch, first_ray, rgb, weights, ordering)` on the chunks of `chunk` rays of
-/// `out`, in parallel, each with its own scratch buffers; the first error stops the rest.
-fn par_ray_chunks<F>(out: &mut RayOutput, chunk: usize, task: F) -> Result<()>
+/// One chunk's rays (origins, directions).
+type ChunkRays<'a> = (&'a [DVec3], &'a [DVec3]);
+/// One chunk's outputs (rgb, weights, ordering).
+type ChunkOut<'a> = (&'a mut [f32], &'a mut [f32], &'a mut [f32]);
+
+/// Runs `task(scratch, first_ray, rays, outputs)` on the chunks of `chunk` rays of `out` (and the
+/// matching `origins` and `dirs`), in parallel, each with its own scratch buffers; the first
+/// error stops the rest.
+fn par_ray_chunks<F>(
+    out: &mut RayOutput,
+    chunk: usize,
+    origins: &[DVec3],
+    dirs: &[DVec3],
+    task: F,
+) -> Result<()>
 where
-    F: Fn(&mut Scratch, usize, &mut [f32], &mut [f32], &mut [f32]) -> Result<()> + Sync + Send,
+    F: Fn(&mut Scratch, usize, ChunkRays, ChunkOut) -> Result<()> + Sync + Send,
 {
     let s = out.fields;
     out.rgb
@@ -909,6 +900,8 @@ where
         .zip(out.ordering.par_chunks_mut(s * chunk))
         .enumerate()
         .try_for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
-            task(scratch, ci * chunk, rgb, w, ord)
+            let (start, n) = (ci * chunk, rgb.len() / 3);
+            let rays = (&origins[start..start + n], &dirs[start..start + n]);
+            task(scratch, start, rays, (rgb, w, ord))
         })
 }
