@@ -47,7 +47,7 @@ man:
 	done
 	@echo "man pages: $(words $(wildcard man/*.1)) rendered without warnings"
 
-# Synthesise a held-out scene, encode its first view, move one object and delete another,
+# Synthesise a held-out scene, encode its first view (50 refinement steps), move one object and delete another,
 # render an orbit of novel views with masks before and after the edit, and draw a contact sheet:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
@@ -56,7 +56,7 @@ demo: build
 	@mkdir -p $(DEMO)
 	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q
 	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
-	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.003 -o $(DEMO)/scene.codes
+	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.003 --refine 50 -o $(DEMO)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json
 	$(RELEASE)/colf-edit examples/demo-edits.json $(DEMO)/scene.codes -o $(DEMO)/edited.codes
 	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO)/orbit.json
@@ -70,36 +70,48 @@ demo: build
 	@echo "demo: slots in $(DEMO)/slots.json, renders in $(DEMO)/orbit and $(DEMO)/edited,"
 	@echo "      contact sheet $(DEMO)/sheet.png"
 
-# The default model's recipe (README, "The default model"): 400 training and 100 held-out
-# clevr567 scenes at 64²; a model with slot frames at the attention centroids, a locality
-# bound, 6 Fourier frequencies on the rays and a zero background latent. Stage 1 (2,250 steps):
-# weak mask supervision of the compositor; stage 2 (from stage 1, to MODEL_STEPS): adds weak
-# mask supervision of the slot attention, learning rate constant up to MODEL_DECAY, then
-# decaying (half cosine) to 3e-5. Re-running `make model` resumes from the checkpoints in
-# $(MODEL_RUN) (a stopped run loses nothing; stage 1 is skipped once stage 2 has started); the
-# result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json), plotted
-# ($(MODEL_RUN)/training.png) and copied to models/default.safetensors.
+# The default model's recipe (README, "The default model"): clevr567 scenes at 64², 100 held
+# out; a model with slot frames at the attention centroids, a locality bound, 6 Fourier
+# frequencies on the rays and a zero background latent. Stage 1 (2,250 steps, 400 scenes): weak
+# mask supervision of the compositor. Stage 2 (from stage 1, 54,000 steps, 400 scenes): adds weak
+# mask supervision of the slot attention; learning rate constant to step 45,000, then a half
+# cosine to 3e-5. Stage 3 (from stage 2, 18,000 steps, 2,000 scenes, the first 400 being stage
+# 2's): learning rate 1e-4, half cosine from step 10,000 to 2e-5. Re-running `make model` resumes
+# from the checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the
+# next has started); the result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json,
+# and with 50 refinement steps eval-refined.json), plotted ($(MODEL_RUN)/training.png) and
+# copied to models/default.safetensors.
 MODEL_RUN ?= out/model
-MODEL_STEPS ?= 54000
-MODEL_DECAY ?= 45000
-MODEL_FLAGS := --data $(MODEL_RUN)/data/train --eval-data $(MODEL_RUN)/data/test --eval-every 1000 \
-  --eval-scenes 8 --checkpoint-every 250 --lr 3e-4 --object-fraction 0.2 --mask-weight 0.1
+MODEL_COMMON := --eval-data $(MODEL_RUN)/data/test --checkpoint-every 250 --object-fraction 0.2 \
+  --mask-weight 0.1
+STAGE12_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train --eval-every 1000 --eval-scenes 8 \
+  --lr 3e-4
 model: build
 	@mkdir -p $(MODEL_RUN)
 	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
+	test -d $(MODEL_RUN)/data/train2k || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train2k --scenes 2000 -q
 	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(MODEL_FLAGS) --out $(MODEL_RUN)/stage1.safetensors \
+	test -f $(MODEL_RUN)/stage2.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(STAGE12_FLAGS) --out $(MODEL_RUN)/stage1.safetensors \
 	  --steps 2250 --warmup 500 --seed 9 \
 	  $(if $(wildcard $(MODEL_RUN)/stage1.safetensors.ckpt),--resume,--zero-background \
 	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
-	$(RELEASE)/colf-train $(MODEL_FLAGS) --out $(MODEL_RUN)/model.safetensors \
-	  --steps $(MODEL_STEPS) --warmup 200 --decay-from $(MODEL_DECAY) --final-lr 3e-5 --seed 10 \
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(STAGE12_FLAGS) --out $(MODEL_RUN)/stage2.safetensors \
+	  --steps 54000 --warmup 200 --decay-from 45000 --final-lr 3e-5 --seed 10 \
 	  --attention-mask-weight 0.1 \
-	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
+	  $(if $(wildcard $(MODEL_RUN)/stage2.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
+	$(RELEASE)/colf-train $(MODEL_COMMON) --data $(MODEL_RUN)/data/train2k --eval-every 2000 \
+	  --eval-scenes 16 --out $(MODEL_RUN)/model.safetensors \
+	  --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 --final-lr 2e-5 --seed 11 \
+	  --attention-mask-weight 0.1 \
+	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage2.safetensors)
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json
+	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
+	  --refine 50 > $(MODEL_RUN)/eval-refined.json.tmp \
+	  && mv $(MODEL_RUN)/eval-refined.json.tmp $(MODEL_RUN)/eval-refined.json
 	cp $(MODEL_RUN)/model.safetensors models/default.safetensors
 
 install: build

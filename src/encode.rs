@@ -4,6 +4,7 @@ use crate::camera::{Frame, Intrinsics};
 use crate::codes::{Codes, Slot};
 use crate::image_io::RgbImage32;
 use crate::model::Colf;
+use crate::refine::{refine_latents, RefineOptions, RefineReport};
 use anyhow::{bail, Result};
 
 /// Largest slot count `colf-encode` accepts: slot attention runs with any K, but beyond this a
@@ -24,6 +25,8 @@ pub struct EncodeOptions {
     pub camera: Option<Frame>,
     /// Name recorded in `sources` as `NAME#k` (k = the slot's index before pruning).
     pub source: String,
+    /// Test-time refinement of the kept slots' latents on this image (`steps: 0`: none).
+    pub refine: RefineOptions,
 }
 
 /// The camera assumed for an image given without one: at the world origin in OpenGL axes
@@ -38,6 +41,15 @@ pub fn default_camera(w: u32, h: u32) -> Frame {
 
 /// Encodes `image` with `model`.
 pub fn encode_image(model: &Colf, image: &RgbImage32, opts: &EncodeOptions) -> Result<Codes> {
+    Ok(encode_image_report(model, image, opts)?.0)
+}
+
+/// Encodes `image` with `model`; also returns what refinement did, if it ran.
+pub fn encode_image_report(
+    model: &Colf,
+    image: &RgbImage32,
+    opts: &EncodeOptions,
+) -> Result<(Codes, Option<RefineReport>)> {
     if opts.num_slots > MAX_ENCODE_SLOTS {
         bail!(
             "--slots {} is more than the {MAX_ENCODE_SLOTS} supported",
@@ -61,7 +73,7 @@ pub fn encode_image(model: &Colf, image: &RgbImage32, opts: &EncodeOptions) -> R
         .clone()
         .unwrap_or_else(|| default_camera(image.w, image.h));
     let frames = crate::model::frames::slot_frames(model.config(), &camera, &encoded.fg_centroid);
-    let slots = encoded
+    let mut slots: Vec<Slot> = encoded
         .fg_latents
         .into_iter()
         .zip(encoded.slot_mass)
@@ -75,9 +87,33 @@ pub fn encode_image(model: &Colf, image: &RgbImage32, opts: &EncodeOptions) -> R
             source: format!("{}#{k}", opts.source),
         })
         .collect();
-    Ok(Codes {
-        slots,
-        background: encoded.bg_latent,
-        model: model.identity()?,
-    })
+    let mut background = encoded.bg_latent;
+    let report = if opts.refine.steps > 0 {
+        // After pruning: the kept slots learn to cover what the dropped ones rendered.
+        let mut latents: Vec<Vec<f32>> = slots.iter().map(|s| s.latent.clone()).collect();
+        let frames: Vec<glam::DMat4> = slots.iter().map(|s| s.slot_to_world).collect();
+        let report = refine_latents(
+            model,
+            &mut latents,
+            &mut background,
+            &frames,
+            &camera,
+            image,
+            &opts.refine,
+        )?;
+        for (slot, latent) in slots.iter_mut().zip(latents) {
+            slot.latent = latent;
+        }
+        Some(report)
+    } else {
+        None
+    };
+    Ok((
+        Codes {
+            slots,
+            background,
+            model: model.identity()?,
+        },
+        report,
+    ))
 }

@@ -7,6 +7,7 @@ use crate::dataset::{Dataset, SceneData};
 use crate::encode::{encode_image, EncodeOptions};
 use crate::metrics::{ari, fg_ari, psnr, ssim};
 use crate::model::Colf;
+use crate::refine::RefineOptions;
 use crate::render::PreparedScene;
 use crate::render_output::FrameRender;
 use anyhow::{bail, Context, Result};
@@ -71,12 +72,22 @@ impl DatasetScores {
     }
 }
 
+/// How scenes are encoded for evaluation.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EvalOptions {
+    /// Foreground slots K.
+    pub num_slots: usize,
+    /// Seed of the slot noise.
+    pub seed: u64,
+    /// Test-time refinement of the latents on view 0 (`steps: 0`: none).
+    pub refine: RefineOptions,
+}
+
 /// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
 pub fn encode_and_render(
     model: &Colf,
     scene: &SceneData,
-    num_slots: usize,
-    seed: u64,
+    opts: &EvalOptions,
 ) -> Result<(Codes, Vec<FrameRender>)> {
     let Some(input) = scene.views.first() else {
         bail!("scene {} has no views", scene.name);
@@ -85,11 +96,12 @@ pub fn encode_and_render(
         model,
         &input.image,
         &EncodeOptions {
-            num_slots,
+            num_slots: opts.num_slots,
             prune_mass: None,
-            seed,
+            seed: opts.seed,
             camera: Some(input.frame.clone()),
             source: scene.name.clone(),
+            refine: opts.refine,
         },
     )?;
     let prepared = PreparedScene::new(model, &codes, &scene.name)?;
@@ -172,15 +184,14 @@ pub fn evaluate(
     model: &Colf,
     data: &Dataset,
     max_scenes: Option<usize>,
-    num_slots: usize,
-    seed: u64,
+    opts: &EvalOptions,
     mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
 ) -> Result<(DatasetScores, Vec<SceneScores>)> {
     let n = max_scenes.map_or(data.len(), |m| m.min(data.len()));
     let mut rows = Vec::with_capacity(n);
     for i in 0..n {
         let scene = data.load(i)?;
-        let (_, renders) = encode_and_render(model, &scene, num_slots, seed)
+        let (_, renders) = encode_and_render(model, &scene, opts)
             .with_context(|| format!("scene {}", scene.name))?;
         let row = score_scene(&scene, &renders)?;
         on_scene(i, &row, &renders);

@@ -28,6 +28,7 @@ pub mod image_io;
 pub mod io;
 pub mod metrics;
 pub mod model;
+pub mod refine;
 pub mod render;
 pub mod render_adaptive;
 pub mod render_fast;

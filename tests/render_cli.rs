@@ -281,3 +281,68 @@ fn bad_inputs_leave_no_output() {
     let out = bin("colf-render").args(["--out", "x"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
 }
+
+#[test]
+fn refined_encoding_fits_the_input_view_and_is_deterministic() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let encode_refined = |out: &Path, extra: &[&str]| {
+        bin("colf-encode")
+            .arg(scene.join("view_000.png"))
+            .arg("--camera")
+            .arg(scene.join("transforms.json"))
+            .args(extra)
+            .arg("-o")
+            .arg(out)
+            .output()
+            .unwrap()
+    };
+    let plain = dir.path().join("plain.codes");
+    encode(&scene, &plain);
+    let (a, b) = (dir.path().join("a.codes"), dir.path().join("b.codes"));
+    for out in [&a, &b] {
+        let run = encode_refined(out, &["--refine", "10"]);
+        assert!(run.status.success(), "{run:?}");
+    }
+    assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    // Refinement changes the latents only, never the slots' frames.
+    let (plain_codes, refined) = (
+        Codes::read(plain.to_str().unwrap()).unwrap(),
+        Codes::read(a.to_str().unwrap()).unwrap(),
+    );
+    assert_eq!(plain_codes.slots.len(), refined.slots.len());
+    assert!(plain_codes
+        .slots
+        .iter()
+        .zip(&refined.slots)
+        .all(|(p, r)| p.slot_to_world == r.slot_to_world && p.latent != r.latent));
+    // The input view is reconstructed better.
+    let psnr_of = |codes: &Path, name: &str| {
+        let out = dir.path().join(name);
+        bin("colf-render")
+            .arg(codes)
+            .arg("--cameras")
+            .arg(scene.join("transforms.json"))
+            .args(["--frames", "0", "-q", "--out"])
+            .arg(&out)
+            .assert()
+            .success();
+        let eval = bin("colf-eval")
+            .arg("images")
+            .arg(out.join("view_000.png"))
+            .arg(scene.join("view_000.png"))
+            .output()
+            .unwrap();
+        let doc: serde_json::Value = serde_json::from_slice(&eval.stdout).unwrap();
+        doc["psnr"].as_f64().unwrap()
+    };
+    let (before, after) = (psnr_of(&plain, "r0"), psnr_of(&a, "r1"));
+    assert!(after > before + 0.5, "refined {after} dB vs {before} dB");
+
+    let bad = dir.path().join("bad.codes");
+    let out = encode_refined(&bad, &["--refine", "3", "--refine-lr", "-1"]);
+    one_line_error(&out, "encode", "--refine-lr");
+    assert!(!bad.exists());
+    let out = encode_refined(&bad, &["--refine", "many"]);
+    assert_eq!(out.status.code(), Some(2));
+}

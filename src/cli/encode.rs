@@ -18,9 +18,16 @@ used (the camera frame of the image is the world). --slots sets the number of fo
 (any K >= 0; default: the model's). --prune drops slots that took less than MASS of the \
 attention, so a scene keeps only the slots it needs. The slot noise is drawn from a seeded \
 generator: the same input, model, options and --seed give byte-identical output.\n\n\
+--refine N then takes N Adam steps on the slot latents alone (the model's weights and the slot \
+frames fixed) to lower the colour error of IMAGE as seen by its camera: the encoder's latents are \
+a one-pass guess for any scene, and a few steps fit this one. Only IMAGE is used, so novel \
+views stay predictions; on held-out clevr567 scenes 50 steps gave about +1.7 dB in novel views \
+and cost about 3.5 s per 64x64 image on one core (README, \"Refinement\"). Too many steps or too \
+high a --refine-lr fit the input view at the expense of novel views.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
-colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect"
+colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \
+colf-encode view_000.png --camera transforms.json --refine 50 -o scene.codes"
 )]
 pub struct EncodeArgs {
     /// Input image, PNG (`-`: stdin).
@@ -46,6 +53,9 @@ pub struct EncodeArgs {
     /// Seed of the slot noise.
     #[arg(long, default_value_t = 0, value_name = "S")]
     pub seed: u64,
+
+    #[command(flatten)]
+    pub refine: crate::cli::RefineArgs,
 
     /// Model file (default: $COLF_MODEL, else the bundled default model).
     #[arg(long, value_name = "M")]
@@ -98,6 +108,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
         seed: args.seed,
         camera,
         source,
+        refine: args.refine.options(args.seed),
     };
     let codes = encode_image(&model, &image, &opts)?;
     codes.write(&args.output)

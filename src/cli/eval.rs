@@ -35,7 +35,9 @@ encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-
 on view 0; PSNR, SSIM and NV-ARI (FG-ARI of the novel views) are averaged over the other views; \
 then each score is averaged over the scenes where it is defined. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
-slots) and slots_used (foreground slots that win a pixel of view 0). The JSON object goes to \
+slots) and slots_used (foreground slots that win a pixel of view 0). --refine N refines the \
+latents on view 0 before rendering, as colf-encode --refine does (view 0 only: the novel views \
+stay unseen); the JSON records refine_steps. The JSON object goes to \
 stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
 masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
@@ -68,6 +70,9 @@ pub struct EvalArgs {
     /// Seed of the slot noise.
     #[arg(long, default_value_t = 0, value_name = "S", requires = "data")]
     pub seed: u64,
+
+    #[command(flatten)]
+    pub refine: crate::cli::RefineArgs,
 
     /// Add the per-scene rows to the JSON.
     #[arg(long, requires = "data")]
@@ -181,8 +186,11 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         &model,
         &dataset,
         args.scenes,
-        slots,
-        args.seed,
+        &crate::evaluate::EvalOptions {
+            num_slots: slots,
+            seed: args.seed,
+            refine: args.refine.options(args.seed),
+        },
         |i, row, renders| {
             if let Some(dir) = &args.renders {
                 for (v, frame) in renders.iter().enumerate() {
@@ -217,6 +225,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["data"] = serde_json::json!(data.display().to_string());
     doc["model"] = serde_json::json!(model.identity()?);
     doc["slots"] = serde_json::json!(slots);
+    doc["refine_steps"] = serde_json::json!(args.refine.refine);
     if args.per_scene {
         doc["per_scene"] = serde_json::to_value(&rows)?;
     }

@@ -40,3 +40,36 @@ pub fn commands() -> Vec<clap::Command> {
         sheet::SheetArgs::command(),
     ]
 }
+
+/// Test-time refinement options shared by `colf-encode` and `colf-eval --data`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct RefineArgs {
+    /// Refine the slot latents with N Adam steps on the input image (0: the encoder's latents).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub refine: usize,
+
+    /// Learning rate of the refinement.
+    #[arg(long, default_value_t = crate::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true)]
+    pub refine_lr: f64,
+
+    /// Pixels of the input image rendered per refinement step (all when the image has fewer).
+    #[arg(long, default_value_t = crate::refine::RefineOptions::default().rays, value_name = "R")]
+    pub refine_rays: usize,
+
+    /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
+    #[arg(long, default_value_t = crate::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
+    pub refine_anchor: f64,
+}
+
+impl RefineArgs {
+    /// The refinement options; the pixel subsets are drawn from `seed`.
+    pub fn options(&self, seed: u64) -> crate::refine::RefineOptions {
+        crate::refine::RefineOptions {
+            steps: self.refine,
+            lr: self.refine_lr,
+            rays: self.refine_rays,
+            anchor_weight: self.refine_anchor,
+            seed,
+        }
+    }
+}

@@ -451,8 +451,10 @@ impl Trainer {
             &self.colf,
             data,
             Some(self.opts.eval_scenes),
-            self.num_slots,
-            0,
+            &crate::evaluate::EvalOptions {
+                num_slots: self.num_slots,
+                ..Default::default()
+            },
             |_, _, _| {},
         )?;
         Ok(Some(scores))

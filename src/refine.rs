@@ -1,0 +1,381 @@
+//! Test-time refinement of slot latents: the encoder's slots are an amortised guess, made in one
+//! pass for any scene; a few Adam steps on the latents alone (the model's weights fixed, the
+//! slot frames fixed) then lower the input view's colour error for this scene. Only the input
+//! image is used, so novel views are still predictions; the decoder, trained on many views of
+//! many scenes, is the prior that keeps a refined latent a 3-D object (how far that holds is
+//! measured, README "Refinement").
+//!
+//! Each step renders a seeded random subset of the input view's pixels (all of them when the
+//! image has no more than `rays` pixels), so a step costs one training step's decoder pass on
+//! one view, and the result is the same for the same inputs.
+
+use crate::camera::Frame;
+use crate::image_io::RgbImage32;
+use crate::model::{Colf, RayBatch, SceneRays};
+use crate::train::adam::{Adam, AdamConfig};
+use anyhow::{bail, Context, Result};
+use candle_core::{Tensor, Var};
+use glam::{DMat4, DVec3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+/// How to refine.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefineOptions {
+    /// Adam steps (0: no refinement).
+    pub steps: usize,
+    /// Adam's learning rate on the latents.
+    pub lr: f64,
+    /// Pixels rendered per step (all of them when the image has fewer).
+    pub rays: usize,
+    /// Weight of the pull toward the encoder's latents, λ·mean((z − z₀)²): keeps a latent near
+    /// what the decoder was trained on.
+    pub anchor_weight: f64,
+    /// Seed of the pixel subsets.
+    pub seed: u64,
+}
+
+impl Default for RefineOptions {
+    fn default() -> Self {
+        RefineOptions {
+            steps: 0,
+            lr: 0.01,
+            rays: 4096,
+            anchor_weight: 0.0,
+            seed: 0,
+        }
+    }
+}
+
+/// What a refinement did: the input view's PSNR (on the rendered subsets) at the first and the
+/// last step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefineReport {
+    pub steps: usize,
+    pub first_psnr: f64,
+    pub last_psnr: f64,
+}
+
+/// The world rays of `image`'s pixel centres seen by `camera` (scaled when the camera's
+/// intrinsics are for another resolution) and their colours.
+fn pixel_rays(camera: &Frame, image: &RgbImage32) -> (Vec<DVec3>, Vec<DVec3>) {
+    let (w, h) = (image.w as usize, image.h as usize);
+    let sx = camera.intrinsics.w as f64 / w as f64;
+    let sy = camera.intrinsics.h as f64 / h as f64;
+    let mut origins = Vec::with_capacity(w * h);
+    let mut dirs = Vec::with_capacity(w * h);
+    for j in 0..h {
+        for i in 0..w {
+            let ray = camera.ray_at((i as f64 + 0.5) * sx, (j as f64 + 0.5) * sy);
+            origins.push(ray.origin);
+            dirs.push(ray.direction);
+        }
+    }
+    (origins, dirs)
+}
+
+fn psnr_of_mse(mse: f64) -> f64 {
+    -10.0 * mse.max(1e-12).log10()
+}
+
+/// Refines `fg_latents` (and the background latent, unless the model fixes it to zero) so that
+/// the slots, in frames `slot_to_world`, render `image` as seen by `camera`. Returns the report;
+/// the latents are replaced only if every refined value is finite.
+pub fn refine_latents(
+    model: &Colf,
+    fg_latents: &mut [Vec<f32>],
+    bg_latent: &mut Vec<f32>,
+    slot_to_world: &[DMat4],
+    camera: &Frame,
+    image: &RgbImage32,
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
+    if !(opts.lr.is_finite() && opts.lr > 0.0) {
+        bail!("--refine-lr must be a positive number, not {}", opts.lr);
+    }
+    if !(opts.anchor_weight.is_finite() && opts.anchor_weight >= 0.0) {
+        bail!(
+            "--refine-anchor must be a number ≥ 0, not {}",
+            opts.anchor_weight
+        );
+    }
+    if opts.rays == 0 {
+        bail!("--refine-rays must be at least 1");
+    }
+    let net = model.model();
+    let cfg = model.config();
+    if net.light_field().is_none() {
+        bail!("refinement applies to light-field models, not the volumetric baseline");
+    }
+    let k = fg_latents.len();
+    let d = cfg.slot_dim;
+    if opts.steps == 0 || k == 0 {
+        return Ok(RefineReport {
+            steps: 0,
+            first_psnr: f64::NAN,
+            last_psnr: f64::NAN,
+        });
+    }
+    let dev = model.device();
+    let fg0 = Tensor::from_vec(
+        fg_latents.iter().flatten().copied().collect::<Vec<f32>>(),
+        (1, k, d),
+        dev,
+    )?;
+    let bg0 = Tensor::from_vec(bg_latent.clone(), (1, d), dev)?;
+    let fg = Var::from_tensor(&fg0)?;
+    let bg = Var::from_tensor(&bg0)?;
+    let mut params = vec![("fg".to_string(), fg.clone())];
+    if !cfg.zero_background {
+        params.push(("bg".to_string(), bg.clone()));
+    }
+    let mut adam = Adam::new(
+        params,
+        AdamConfig {
+            clip_norm: None,
+            ..AdamConfig::default()
+        },
+    )?;
+    let (origins, dirs) = pixel_rays(camera, image);
+    let n = origins.len();
+    let per_step = opts.rays.min(n);
+    let mut rng = StdRng::seed_from_u64(opts.seed);
+    // Every pixel once: one fixed batch for all steps.
+    let fixed = (per_step == n)
+        .then(|| batch(model, slot_to_world, &origins, &dirs, &image.data, None))
+        .transpose()?;
+    let (mut first, mut last) = (f64::NAN, f64::NAN);
+    for step in 0..opts.steps {
+        let drawn;
+        let (rays, target) = match &fixed {
+            Some(b) => (&b.0, &b.1),
+            None => {
+                let pick: Vec<usize> = (0..per_step).map(|_| rng.random_range(0..n)).collect();
+                drawn = batch(
+                    model,
+                    slot_to_world,
+                    &origins,
+                    &dirs,
+                    &image.data,
+                    Some(&pick),
+                )?;
+                (&drawn.0, &drawn.1)
+            }
+        };
+        let fields = net.prepare(fg.as_tensor(), bg.as_tensor())?;
+        let decoded = net.decode(&fields, rays)?;
+        let mse = (&decoded.rgb - target)?.sqr()?.mean_all()?;
+        let mse_value = mse.to_scalar::<f32>()? as f64;
+        if step == 0 {
+            first = psnr_of_mse(mse_value);
+        }
+        last = psnr_of_mse(mse_value);
+        let mut loss = mse;
+        if opts.anchor_weight > 0.0 {
+            let pull = (fg.as_tensor() - &fg0)?.sqr()?.mean_all()?;
+            loss = (loss + (pull * opts.anchor_weight)?)?;
+        }
+        let grads = loss.backward()?;
+        if adam.step(&grads, opts.lr).is_err() {
+            // A non-finite gradient: keep what the last good step gave.
+            break;
+        }
+    }
+    let refined_fg = fg.as_tensor().squeeze(0)?.to_vec2::<f32>()?;
+    let refined_bg = bg.as_tensor().squeeze(0)?.to_vec1::<f32>()?;
+    let finite = refined_fg
+        .iter()
+        .flatten()
+        .chain(&refined_bg)
+        .all(|v| v.is_finite());
+    if finite {
+        for (dst, src) in fg_latents.iter_mut().zip(refined_fg) {
+            *dst = src;
+        }
+        *bg_latent = refined_bg;
+    }
+    Ok(RefineReport {
+        steps: opts.steps,
+        first_psnr: first,
+        last_psnr: last,
+    })
+}
+
+/// The encoded rays and target colours [1, R, 3] of the pixels `pick` (all when `None`).
+fn batch(
+    model: &Colf,
+    slot_to_world: &[DMat4],
+    origins: &[DVec3],
+    dirs: &[DVec3],
+    rgb: &[f32],
+    pick: Option<&[usize]>,
+) -> Result<(RayBatch, Tensor)> {
+    let all: Vec<usize>;
+    let pick = match pick {
+        Some(p) => p,
+        None => {
+            all = (0..origins.len()).collect();
+            &all
+        }
+    };
+    let o: Vec<DVec3> = pick.iter().map(|&p| origins[p]).collect();
+    let d: Vec<DVec3> = pick.iter().map(|&p| dirs[p]).collect();
+    let t: Vec<f32> = pick
+        .iter()
+        .flat_map(|&p| rgb[3 * p..3 * p + 3].iter().copied())
+        .collect();
+    let rays = RayBatch::new(
+        model.config(),
+        &[SceneRays {
+            slot_to_world,
+            origins: &o,
+            dirs: &d,
+        }],
+        model.device(),
+    )
+    .context("encoding the input view's rays")?;
+    let target = Tensor::from_vec(t, (1, pick.len(), 3), model.device())?;
+    Ok((rays, target))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{look_at, Intrinsics};
+    use crate::model::Config;
+
+    fn camera(size: u32) -> Frame {
+        Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(size, size, 49.13),
+            camera_to_world: look_at(DVec3::new(0.0, -8.0, 9.0), DVec3::ZERO, DVec3::Z).unwrap(),
+        }
+    }
+
+    fn latents(k: usize, d: usize, seed: u64) -> Vec<Vec<f32>> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        (0..k)
+            .map(|_| (0..d).map(|_| rng.random_range(-1.5f32..1.5)).collect())
+            .collect()
+    }
+
+    /// A target the model can render exactly: its own image of latents `truth`.
+    fn target(model: &Colf, truth: &[Vec<f32>], bg: &[f32], cam: &Frame) -> RgbImage32 {
+        let frames = vec![cam.camera_to_world; truth.len()];
+        let prepared = model.prepare(truth, bg).unwrap();
+        let (o, d) = pixel_rays(
+            cam,
+            &RgbImage32 {
+                w: cam.intrinsics.w,
+                h: cam.intrinsics.h,
+                data: Vec::new(),
+            },
+        );
+        let out = model.render_rays(&prepared, &frames, &o, &d).unwrap();
+        RgbImage32 {
+            w: cam.intrinsics.w,
+            h: cam.intrinsics.h,
+            data: out.rgb,
+        }
+    }
+
+    #[test]
+    fn refinement_fits_the_input_view_and_is_deterministic() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(24);
+        let bg = vec![0.0; d];
+        let image = target(&model, &latents(3, d, 1), &bg, &cam);
+        let start = latents(3, d, 2);
+        let frames = vec![cam.camera_to_world; 3];
+        let opts = RefineOptions {
+            steps: 30,
+            lr: 0.05,
+            rays: 256,
+            ..Default::default()
+        };
+        let run = || {
+            let (mut fg, mut bg) = (start.clone(), bg.clone());
+            let report =
+                refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+            (fg, bg, report)
+        };
+        let (fg, _, report) = run();
+        assert!(
+            report.last_psnr > report.first_psnr + 3.0,
+            "refinement should fit the view: {report:?}"
+        );
+        assert_ne!(fg, start);
+        assert_eq!(run().0, fg, "the same inputs give the same latents");
+    }
+
+    #[test]
+    fn no_steps_leave_the_latents_alone() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(16);
+        let (mut fg, mut bg) = (latents(2, d, 5), vec![0.5; d]);
+        let image = target(&model, &fg, &bg, &cam);
+        let before = (fg.clone(), bg.clone());
+        let frames = vec![cam.camera_to_world; 2];
+        let opts = RefineOptions::default();
+        let report =
+            refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+        assert_eq!(report.steps, 0);
+        assert_eq!((fg, bg), before);
+    }
+
+    #[test]
+    fn a_zero_background_model_keeps_its_background() {
+        let mut cfg = Config::small();
+        cfg.zero_background = true;
+        let model = Colf::init(&cfg, 4).unwrap();
+        let d = cfg.slot_dim;
+        let cam = camera(16);
+        let (mut fg, mut bg) = (latents(2, d, 6), vec![0.0; d]);
+        let image = target(&model, &latents(2, d, 7), &bg, &cam);
+        let frames = vec![cam.camera_to_world; 2];
+        let opts = RefineOptions {
+            steps: 3,
+            ..Default::default()
+        };
+        refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+        assert!(bg.iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn bad_options_are_refused() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(8);
+        let (mut fg, mut bg) = (latents(1, d, 5), vec![0.0; d]);
+        let image = target(&model, &fg, &bg, &cam);
+        let frames = vec![cam.camera_to_world];
+        for opts in [
+            RefineOptions {
+                steps: 1,
+                lr: f64::NAN,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                lr: -1.0,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                rays: 0,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                anchor_weight: -1.0,
+                ..Default::default()
+            },
+        ] {
+            assert!(
+                refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).is_err()
+            );
+        }
+    }
+}
