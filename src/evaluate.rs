@@ -79,6 +79,8 @@ pub struct EvalOptions {
     pub num_slots: usize,
     /// Seed of the slot noise.
     pub seed: u64,
+    /// Encodings tried per scene (the best reconstruction of view 0 is kept; 0 counts as 1).
+    pub tries: usize,
     /// Test-time refinement of the latents on view 0 (`steps: 0`: none).
     pub refine: RefineOptions,
 }
@@ -101,6 +103,7 @@ pub fn encode_and_render(
             seed: opts.seed,
             camera: Some(input.frame.clone()),
             source: scene.name.clone(),
+            tries: opts.tries.max(1),
             refine: opts.refine,
         },
     )?;

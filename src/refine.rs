@@ -78,6 +78,47 @@ fn psnr_of_mse(mse: f64) -> f64 {
     -10.0 * mse.max(1e-12).log10()
 }
 
+/// Pixels of the input view compared when choosing between encodings (a seeded subset when the
+/// image has more).
+const COMPARE_PIXELS: usize = 4096;
+
+/// The mean squared colour error of slots (`fg_latents` in frames `slot_to_world`, and
+/// `bg_latent`) against `image` seen by `camera`, over all pixels or a fixed seeded subset of
+/// `COMPARE_PIXELS` of them (the same subset for every call on the same image).
+pub fn input_view_mse(
+    model: &Colf,
+    fg_latents: &[Vec<f32>],
+    bg_latent: &[f32],
+    slot_to_world: &[DMat4],
+    camera: &Frame,
+    image: &RgbImage32,
+) -> Result<f64> {
+    let (origins, dirs) = pixel_rays(camera, image);
+    let n = origins.len();
+    let pick: Vec<usize> = if n <= COMPARE_PIXELS {
+        (0..n).collect()
+    } else {
+        let mut rng = StdRng::seed_from_u64(0);
+        (0..COMPARE_PIXELS)
+            .map(|_| rng.random_range(0..n))
+            .collect()
+    };
+    let o: Vec<DVec3> = pick.iter().map(|&p| origins[p]).collect();
+    let d: Vec<DVec3> = pick.iter().map(|&p| dirs[p]).collect();
+    let prepared = model.prepare(fg_latents, bg_latent)?;
+    let out = model.render_rays(&prepared, slot_to_world, &o, &d)?;
+    let sum: f64 = pick
+        .iter()
+        .enumerate()
+        .flat_map(|(r, &p)| (0..3).map(move |c| (r, p, c)))
+        .map(|(r, p, c)| {
+            let e = out.rgb[3 * r + c] as f64 - image.data[3 * p + c] as f64;
+            e * e
+        })
+        .sum();
+    Ok(sum / (3 * pick.len()).max(1) as f64)
+}
+
 /// Refines `fg_latents` (and the background latent, unless the model fixes it to zero) so that
 /// the slots, in frames `slot_to_world`, render `image` as seen by `camera`. Returns the report;
 /// the latents are replaced only if every refined value is finite.

@@ -23,7 +23,9 @@ frames fixed) to lower the colour error of IMAGE as seen by its camera: the enco
 a one-pass guess for any scene, and a few steps fit this one. Only IMAGE is used, so novel \
 views stay predictions; on held-out clevr567 scenes 50 steps gave about +1.7 dB in novel views \
 and cost about 3.5 s per 64x64 image on one core (README, \"Refinement\"). Too many steps or too \
-high a --refine-lr fit the input view at the expense of novel views.\n\n\
+high a --refine-lr fit the input view at the expense of novel views. --tries N encodes N times \
+(slot noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is \
+closest to it, before any refinement.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \
@@ -55,7 +57,7 @@ pub struct EncodeArgs {
     pub seed: u64,
 
     #[command(flatten)]
-    pub refine: crate::cli::RefineArgs,
+    pub fit: crate::cli::FitArgs,
 
     /// Model file (default: $COLF_MODEL, else the bundled default model).
     #[arg(long, value_name = "M")]
@@ -108,7 +110,8 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
         seed: args.seed,
         camera,
         source,
-        refine: args.refine.options(args.seed),
+        tries: args.fit.tries,
+        refine: args.fit.options(args.seed),
     };
     let codes = encode_image(&model, &image, &opts)?;
     codes.write(&args.output)

@@ -72,7 +72,7 @@ pub struct EvalArgs {
     pub seed: u64,
 
     #[command(flatten)]
-    pub refine: crate::cli::RefineArgs,
+    pub fit: crate::cli::FitArgs,
 
     /// Add the per-scene rows to the JSON.
     #[arg(long, requires = "data")]
@@ -189,7 +189,8 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         &crate::evaluate::EvalOptions {
             num_slots: slots,
             seed: args.seed,
-            refine: args.refine.options(args.seed),
+            tries: args.fit.tries,
+            refine: args.fit.options(args.seed),
         },
         |i, row, renders| {
             if let Some(dir) = &args.renders {
@@ -225,7 +226,8 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["data"] = serde_json::json!(data.display().to_string());
     doc["model"] = serde_json::json!(model.identity()?);
     doc["slots"] = serde_json::json!(slots);
-    doc["refine_steps"] = serde_json::json!(args.refine.refine);
+    doc["tries"] = serde_json::json!(args.fit.tries);
+    doc["refine_steps"] = serde_json::json!(args.fit.refine);
     if args.per_scene {
         doc["per_scene"] = serde_json::to_value(&rows)?;
     }

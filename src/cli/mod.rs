@@ -41,9 +41,14 @@ pub fn commands() -> Vec<clap::Command> {
     ]
 }
 
-/// Test-time refinement options shared by `colf-encode` and `colf-eval --data`.
+/// How an encoding is fitted to its input image, shared by `colf-encode` and `colf-eval --data`.
 #[derive(clap::Args, Debug, Clone)]
-pub struct RefineArgs {
+pub struct FitArgs {
+    /// Encode N times (slot noise seeds S, S+1, ...) and keep the encoding that reconstructs the
+    /// input image best.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub tries: usize,
+
     /// Refine the slot latents with N Adam steps on the input image (0: the encoder's latents).
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub refine: usize,
@@ -61,7 +66,7 @@ pub struct RefineArgs {
     pub refine_anchor: f64,
 }
 
-impl RefineArgs {
+impl FitArgs {
     /// The refinement options; the pixel subsets are drawn from `seed`.
     pub fn options(&self, seed: u64) -> crate::refine::RefineOptions {
         crate::refine::RefineOptions {
