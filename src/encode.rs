@@ -141,18 +141,19 @@ pub fn encode_image_report(
     };
     let report = if opts.refine.steps > 0 {
         // After pruning: the kept slots learn to cover what the dropped ones rendered.
-        let (mut latents, frames) = latents_and_frames(&slots);
+        let (mut latents, mut frames) = latents_and_frames(&slots);
         let report = refine_latents(
             model,
             &mut latents,
             &mut background,
-            &frames,
+            &mut frames,
             &camera,
             image,
             &opts.refine,
         )?;
-        for (slot, latent) in slots.iter_mut().zip(latents) {
+        for ((slot, latent), frame) in slots.iter_mut().zip(latents).zip(frames) {
             slot.latent = latent;
+            slot.slot_to_world = frame;
         }
         Some(report)
     } else {

@@ -1,6 +1,6 @@
 //! Test-time refinement of slot latents: the encoder's slots are an amortised guess, made in one
-//! pass for any scene; a few Adam steps on the latents alone (the model's weights fixed, the
-//! slot frames fixed) then lower the input view's colour error for this scene. Only the input
+//! pass for any scene; a few Adam steps on the latents (and, gently, on the slot frames'
+//! origins; the model's weights fixed) then lower the input view's colour error for this scene. Only the input
 //! image is used, so novel views are still predictions; the decoder, trained on many views of
 //! many scenes, is the prior that keeps a refined latent a 3-D object (how far that holds is
 //! measured, README "Refinement").
@@ -31,6 +31,8 @@ pub struct RefineOptions {
     /// Weight of the pull toward the encoder's latents, λ·mean((z − z₀)²): keeps a latent near
     /// what the decoder was trained on.
     pub anchor_weight: f64,
+    /// Adam's learning rate on the slots' frame origins (world units; 0: frames fixed).
+    pub frame_lr: f64,
     /// Seed of the pixel subsets.
     pub seed: u64,
 }
@@ -40,8 +42,9 @@ impl Default for RefineOptions {
         RefineOptions {
             steps: 0,
             lr: 0.01,
-            rays: 4096,
+            rays: 1024,
             anchor_weight: 0.0,
+            frame_lr: 0.003,
             seed: 0,
         }
     }
@@ -119,14 +122,20 @@ pub fn input_view_mse(
     Ok(sum / (3 * pick.len()).max(1) as f64)
 }
 
-/// Refines `fg_latents` (and the background latent, unless the model fixes it to zero) so that
-/// the slots, in frames `slot_to_world`, render `image` as seen by `camera`. Returns the report;
-/// the latents are replaced only if every refined value is finite.
+/// Refines `fg_latents` (and the background latent, unless the model fixes it to zero; and the
+/// frame origins in `slot_to_world` when `opts.frame_lr > 0`) so that the slots render `image`
+/// as seen by `camera`. Returns the report; the latents and frames are replaced only if every
+/// refined value is finite.
+///
+/// Frame origins enter the rays' encoding on the host (`RayBatch::new`), outside the autodiff
+/// graph; each step therefore linearises the encoding around the current origins (a forward
+/// difference of `FRAME_STEP` world units per axis) and takes the gradient through that
+/// linearisation, which at the current origins is the true gradient.
 pub fn refine_latents(
     model: &Colf,
     fg_latents: &mut [Vec<f32>],
     bg_latent: &mut Vec<f32>,
-    slot_to_world: &[DMat4],
+    slot_to_world: &mut [DMat4],
     camera: &Frame,
     image: &RgbImage32,
     opts: &RefineOptions,
@@ -142,6 +151,12 @@ pub fn refine_latents(
     }
     if opts.rays == 0 {
         bail!("--refine-rays must be at least 1");
+    }
+    if !(opts.frame_lr.is_finite() && opts.frame_lr >= 0.0) {
+        bail!(
+            "--refine-frame-lr must be a number ≥ 0, not {}",
+            opts.frame_lr
+        );
     }
     let net = model.model();
     let cfg = model.config();
@@ -181,25 +196,39 @@ pub fn refine_latents(
     let n = origins.len();
     let per_step = opts.rays.min(n);
     let mut rng = StdRng::seed_from_u64(opts.seed);
-    // Every pixel once: one fixed batch for all steps.
-    let fixed = (per_step == n)
+    let move_frames = opts.frame_lr > 0.0;
+    // Every pixel once and fixed frames: one batch for all steps.
+    let fixed = (per_step == n && !move_frames)
         .then(|| batch(model, slot_to_world, &origins, &dirs, &image.data, None))
         .transpose()?;
+    let all: Vec<usize> = (0..n).collect();
+    let mut frames = slot_to_world.to_vec();
+    // The frame origins' offsets from `frames` (foreground slots; axis-major [3, K]), always
+    // zero when read: each step's update is moved into `frames`.
+    let offset = Var::zeros((3, k), candle_core::DType::F32, dev)?;
+    let mut frame_adam = Adam::new(
+        vec![("offset".to_string(), offset.clone())],
+        AdamConfig {
+            clip_norm: None,
+            ..AdamConfig::default()
+        },
+    )?;
     let (mut first, mut last) = (f64::NAN, f64::NAN);
     for step in 0..opts.steps {
         let drawn;
         let (rays, target) = match &fixed {
             Some(b) => (&b.0, &b.1),
             None => {
-                let pick: Vec<usize> = (0..per_step).map(|_| rng.random_range(0..n)).collect();
-                drawn = batch(
-                    model,
-                    slot_to_world,
-                    &origins,
-                    &dirs,
-                    &image.data,
-                    Some(&pick),
-                )?;
+                let pick: Vec<usize> = if per_step == n {
+                    all.clone()
+                } else {
+                    (0..per_step).map(|_| rng.random_range(0..n)).collect()
+                };
+                drawn = if move_frames {
+                    linearised_batch(model, &frames, &offset, &origins, &dirs, &image.data, &pick)?
+                } else {
+                    batch(model, &frames, &origins, &dirs, &image.data, Some(&pick))?
+                };
                 (&drawn.0, &drawn.1)
             }
         };
@@ -217,9 +246,24 @@ pub fn refine_latents(
             loss = (loss + (pull * opts.anchor_weight)?)?;
         }
         let grads = loss.backward()?;
+        // A non-finite gradient: keep what the last good step gave.
         if adam.step(&grads, opts.lr).is_err() {
-            // A non-finite gradient: keep what the last good step gave.
             break;
+        }
+        if move_frames {
+            if frame_adam.step(&grads, opts.frame_lr).is_err() {
+                break;
+            }
+            let moved = offset.as_tensor().to_vec2::<f32>()?;
+            for (slot, frame) in frames.iter_mut().enumerate() {
+                let delta = DVec3::new(
+                    moved[0][slot] as f64,
+                    moved[1][slot] as f64,
+                    moved[2][slot] as f64,
+                );
+                frame.w_axis += delta.extend(0.0);
+            }
+            offset.set(&offset.as_tensor().zeros_like()?)?;
         }
     }
     let refined_fg = fg.as_tensor().squeeze(0)?.to_vec2::<f32>()?;
@@ -228,8 +272,10 @@ pub fn refine_latents(
         .iter()
         .flatten()
         .chain(&refined_bg)
-        .all(|v| v.is_finite());
+        .all(|v| v.is_finite())
+        && frames.iter().all(|f| f.is_finite());
     if finite {
+        slot_to_world.copy_from_slice(&frames);
         for (dst, src) in fg_latents.iter_mut().zip(refined_fg) {
             *dst = src;
         }
@@ -240,6 +286,64 @@ pub fn refine_latents(
         first_psnr: first,
         last_psnr: last,
     })
+}
+
+/// Forward-difference step for the frame origins' linearisation (world units).
+const FRAME_STEP: f64 = 1e-3;
+
+/// The rays of the pixels `pick` encoded as a function of the foreground frame origins'
+/// offsets `offset` [3, K] (zero at the call): coordinates and ordering shifts at `frames`, plus
+/// their forward-difference derivatives along each world axis times the offsets, so gradients
+/// reach `offset`. Returns the batch and the target colours [1, R, 3].
+fn linearised_batch(
+    model: &Colf,
+    frames: &[DMat4],
+    offset: &Var,
+    origins: &[DVec3],
+    dirs: &[DVec3],
+    rgb: &[f32],
+    pick: &[usize],
+) -> Result<(RayBatch, Tensor)> {
+    let (at, target) = batch(model, frames, origins, dirs, rgb, Some(pick))?;
+    let (s, r) = (at.fields, at.rays);
+    let dev = model.device();
+    // Shifts before the per-ray base is subtracted, so batches at different origins compare.
+    let absolute = |b: &RayBatch| -> Result<Tensor> {
+        let base = Tensor::from_vec(
+            b.base.iter().map(|&v| v as f32).collect::<Vec<f32>>(),
+            (1, r, 1),
+            dev,
+        )?;
+        Ok(b.shift.broadcast_add(&base)?)
+    };
+    let shift_at = absolute(&at)?;
+    let mut coords = at.coords.clone();
+    let mut shift = at.shift.clone();
+    // The background (field 0) never moves: its offset is a constant 0.
+    let zero = Tensor::zeros(1, candle_core::DType::F32, dev)?;
+    for axis in 0..3 {
+        let mut moved = frames.to_vec();
+        for f in moved.iter_mut() {
+            f.w_axis[axis] += FRAME_STEP;
+        }
+        let (ahead, _) = batch(model, &moved, origins, dirs, rgb, Some(pick))?;
+        let per_field = Tensor::cat(&[&zero, &offset.as_tensor().get(axis)?], 0)?; // [S]
+        let d_coords = ((&ahead.coords - &at.coords)? / FRAME_STEP)?;
+        coords = (coords + d_coords.broadcast_mul(&per_field.reshape((s, 1, 1))?)?)?;
+        let d_shift = ((absolute(&ahead)? - &shift_at)? / FRAME_STEP)?;
+        shift = (shift + d_shift.broadcast_mul(&per_field.reshape((1, 1, s))?)?)?;
+    }
+    Ok((
+        RayBatch {
+            coords,
+            shift,
+            base: at.base,
+            scenes: 1,
+            fields: s,
+            rays: r,
+        },
+        target,
+    ))
 }
 
 /// The encoded rays and target colours [1, R, 3] of the pixels `pick` (all when `None`).
@@ -336,9 +440,9 @@ mod tests {
             ..Default::default()
         };
         let run = || {
-            let (mut fg, mut bg) = (start.clone(), bg.clone());
+            let (mut fg, mut bg, mut frames) = (start.clone(), bg.clone(), frames.clone());
             let report =
-                refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+                refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
             (fg, bg, report)
         };
         let (fg, _, report) = run();
@@ -358,10 +462,10 @@ mod tests {
         let (mut fg, mut bg) = (latents(2, d, 5), vec![0.5; d]);
         let image = target(&model, &fg, &bg, &cam);
         let before = (fg.clone(), bg.clone());
-        let frames = vec![cam.camera_to_world; 2];
+        let mut frames = vec![cam.camera_to_world; 2];
         let opts = RefineOptions::default();
         let report =
-            refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+            refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
         assert_eq!(report.steps, 0);
         assert_eq!((fg, bg), before);
     }
@@ -375,12 +479,12 @@ mod tests {
         let cam = camera(16);
         let (mut fg, mut bg) = (latents(2, d, 6), vec![0.0; d]);
         let image = target(&model, &latents(2, d, 7), &bg, &cam);
-        let frames = vec![cam.camera_to_world; 2];
+        let mut frames = vec![cam.camera_to_world; 2];
         let opts = RefineOptions {
             steps: 3,
             ..Default::default()
         };
-        refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).unwrap();
+        refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
         assert!(bg.iter().all(|&v| v == 0.0));
     }
 
@@ -391,7 +495,7 @@ mod tests {
         let cam = camera(8);
         let (mut fg, mut bg) = (latents(1, d, 5), vec![0.0; d]);
         let image = target(&model, &fg, &bg, &cam);
-        let frames = vec![cam.camera_to_world];
+        let mut frames = vec![cam.camera_to_world];
         for opts in [
             RefineOptions {
                 steps: 1,
@@ -413,10 +517,82 @@ mod tests {
                 anchor_weight: -1.0,
                 ..Default::default()
             },
+            RefineOptions {
+                steps: 1,
+                frame_lr: f64::INFINITY,
+                ..Default::default()
+            },
         ] {
             assert!(
-                refine_latents(&model, &mut fg, &mut bg, &frames, &cam, &image, &opts).is_err()
+                refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).is_err()
             );
+        }
+    }
+
+    #[test]
+    fn frame_gradients_match_finite_differences_of_the_loss() {
+        let mut cfg = Config::small();
+        cfg.ray_fourier_freqs = 2;
+        cfg.fg_locality = 2.0;
+        cfg.attention_frames = true;
+        let model = Colf::init(&cfg, 8).unwrap();
+        let d = cfg.slot_dim;
+        let cam = camera(12);
+        let fg = latents(2, d, 9);
+        let bg = vec![0.1; d];
+        let image = target(&model, &latents(2, d, 10), &bg, &cam);
+        let mut frames = vec![cam.camera_to_world; 2];
+        frames[0].w_axis = glam::DVec4::new(0.5, -0.3, 0.2, 1.0);
+        frames[1].w_axis = glam::DVec4::new(-1.0, 0.4, 0.0, 1.0);
+        let (origins, dirs) = pixel_rays(&cam, &image);
+        let pick: Vec<usize> = (0..origins.len()).collect();
+        let net = model.model();
+        let fg_t = Tensor::from_vec(fg.concat(), (1, 2, d), model.device()).unwrap();
+        let bg_t = Tensor::from_vec(bg.clone(), (1, d), model.device()).unwrap();
+        let fields = net.prepare(&fg_t, &bg_t).unwrap();
+        let loss_of = |rays: &RayBatch, target: &Tensor| {
+            let out = net.decode(&fields, rays).unwrap();
+            (&out.rgb - target)
+                .unwrap()
+                .sqr()
+                .unwrap()
+                .mean_all()
+                .unwrap()
+        };
+        let offset = Var::zeros((3, 2), candle_core::DType::F32, model.device()).unwrap();
+        let (rays, target) = linearised_batch(
+            &model,
+            &frames,
+            &offset,
+            &origins,
+            &dirs,
+            &image.data,
+            &pick,
+        )
+        .unwrap();
+        let grads = loss_of(&rays, &target).backward().unwrap();
+        let analytic = grads
+            .get(offset.as_tensor())
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+        let h = 1e-2;
+        for (axis, row) in analytic.iter().enumerate() {
+            for (slot, &g) in row.iter().enumerate() {
+                let eval = |sign: f64| {
+                    let mut moved = frames.clone();
+                    moved[slot].w_axis[axis] += sign * h;
+                    let (b, t) =
+                        batch(&model, &moved, &origins, &dirs, &image.data, Some(&pick)).unwrap();
+                    loss_of(&b, &t).to_scalar::<f32>().unwrap() as f64
+                };
+                let numeric = (eval(1.0) - eval(-1.0)) / (2.0 * h);
+                let scale = numeric.abs().max(g.abs() as f64).max(1e-4);
+                assert!(
+                    (numeric - g as f64).abs() / scale < 0.1,
+                    "axis {axis} slot {slot}: analytic {g} numeric {numeric}"
+                );
+            }
         }
     }
 }

@@ -18,11 +18,11 @@ used (the camera frame of the image is the world). --slots sets the number of fo
 (any K >= 0; default: the model's). --prune drops slots that took less than MASS of the \
 attention, so a scene keeps only the slots it needs. The slot noise is drawn from a seeded \
 generator: the same input, model, options and --seed give byte-identical output.\n\n\
---refine N then takes N Adam steps on the slot latents alone (the model's weights and the slot \
-frames fixed) to lower the colour error of IMAGE as seen by its camera: the encoder's latents are \
-a one-pass guess for any scene, and a few steps fit this one. Only IMAGE is used, so novel \
-views stay predictions; on held-out clevr567 scenes 50 steps gave about +1.7 dB in novel views \
-and cost about 3.5 s per 64x64 image on one core (README, \"Refinement\"). Too many steps or too \
+--refine N then takes N Adam steps on the slot latents and the slot frames' origins (the \
+model's weights fixed; --refine-frame-lr 0 keeps the frames) to lower the colour error of IMAGE \
+as seen by its camera: the encoder's latents are a one-pass guess for any scene, and a few steps \
+fit this one. Only IMAGE is used, so novel views stay predictions; see the README, \
+\"Refinement\", for the measured gain in novel views and the time per image. Too many steps or too \
 high a --refine-lr fit the input view at the expense of novel views. --tries N encodes N times \
 (slot noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is \
 closest to it, before any refinement.\n\n\

@@ -64,6 +64,11 @@ pub struct FitArgs {
     /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
     #[arg(long, default_value_t = crate::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
     pub refine_anchor: f64,
+
+    /// Also move the slots' frame origins during refinement, with this learning rate (world
+    /// units; 0: frames fixed).
+    #[arg(long, default_value_t = crate::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true)]
+    pub refine_frame_lr: f64,
 }
 
 impl FitArgs {
@@ -74,6 +79,7 @@ impl FitArgs {
             lr: self.refine_lr,
             rays: self.refine_rays,
             anchor_weight: self.refine_anchor,
+            frame_lr: self.refine_frame_lr,
             seed,
         }
     }
