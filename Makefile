@@ -73,19 +73,24 @@ demo: build
 # The default model's recipe (README, "The default model"): clevr567 scenes at 64², 100 held
 # out; a model with slot frames at the attention centroids, a locality bound, 6 Fourier
 # frequencies on the rays and a zero background latent. Stage 1 (2,250 steps, 400 scenes): weak
-# mask supervision of the compositor. Stage 2 (from stage 1, 54,000 steps, 400 scenes): adds weak
-# mask supervision of the slot attention; learning rate constant to step 45,000, then a half
-# cosine to 3e-5. Stage 3 (from stage 2, 18,000 steps, 2,000 scenes, the first 400 being stage
-# 2's): learning rate 1e-4, half cosine from step 10,000 to 2e-5. Re-running `make model` resumes
-# from the checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the
-# next has started); the result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json,
-# and with 50 refinement steps eval-refined.json), plotted ($(MODEL_RUN)/training.png) and
-# copied to models/default.safetensors.
+# mask supervision of the compositor, rays drawn 20 % from objects. Stage 2 (from stage 1,
+# 54,000 steps, 400 scenes): adds weak mask supervision of the slot attention; learning rate
+# constant to step 45,000, then a half cosine to 3e-5. Stage 3 (from stage 2, 18,000 steps,
+# 2,000 scenes, the first 400 being stage 2's): learning rate 1e-4, half cosine from step 10,000
+# to 2e-5. Stage 4 (from stage 3, 6,000 steps, the 2,000 scenes): rays drawn uniformly, learning
+# rate 5e-5, half cosine from step 3,000 to 1e-5. Re-running `make model` resumes from the
+# checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the next has
+# started); the result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json, and with 50
+# refinement steps eval-refined.json), plotted ($(MODEL_RUN)/training.png) and copied to
+# models/default.safetensors.
 MODEL_RUN ?= out/model
-MODEL_COMMON := --eval-data $(MODEL_RUN)/data/test --checkpoint-every 250 --object-fraction 0.2 \
-  --mask-weight 0.1
+MODEL_COMMON := --eval-data $(MODEL_RUN)/data/test --checkpoint-every 250 --mask-weight 0.1
 STAGE12_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train --eval-every 1000 --eval-scenes 8 \
-  --lr 3e-4
+  --lr 3e-4 --object-fraction 0.2
+STAGE34_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train2k --eval-every 2000 \
+  --eval-scenes 16 --attention-mask-weight 0.1
+# $(call resume_or_init,OUT,INIT): continue OUT's checkpoint if there is one, else start from INIT.
+resume_or_init = $(if $(wildcard $(1).ckpt),--resume,--init $(2))
 model: build
 	@mkdir -p $(MODEL_RUN)
 	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
@@ -96,16 +101,20 @@ model: build
 	  --steps 2250 --warmup 500 --seed 9 \
 	  $(if $(wildcard $(MODEL_RUN)/stage1.safetensors.ckpt),--resume,--zero-background \
 	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	test -f $(MODEL_RUN)/stage3.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(STAGE12_FLAGS) --out $(MODEL_RUN)/stage2.safetensors \
 	  --steps 54000 --warmup 200 --decay-from 45000 --final-lr 3e-5 --seed 10 \
 	  --attention-mask-weight 0.1 \
-	  $(if $(wildcard $(MODEL_RUN)/stage2.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage1.safetensors)
-	$(RELEASE)/colf-train $(MODEL_COMMON) --data $(MODEL_RUN)/data/train2k --eval-every 2000 \
-	  --eval-scenes 16 --out $(MODEL_RUN)/model.safetensors \
-	  --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 --final-lr 2e-5 --seed 11 \
-	  --attention-mask-weight 0.1 \
-	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init $(MODEL_RUN)/stage2.safetensors)
+	  $(call resume_or_init,$(MODEL_RUN)/stage2.safetensors,$(MODEL_RUN)/stage1.safetensors)
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/stage3.safetensors \
+	  --object-fraction 0.2 --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 \
+	  --final-lr 2e-5 --seed 11 \
+	  $(call resume_or_init,$(MODEL_RUN)/stage3.safetensors,$(MODEL_RUN)/stage2.safetensors)
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	  --object-fraction 0 --steps 6000 --lr 5e-5 --warmup 100 --decay-from 3000 \
+	  --final-lr 1e-5 --seed 12 \
+	  $(call resume_or_init,$(MODEL_RUN)/model.safetensors,$(MODEL_RUN)/stage3.safetensors)
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json

@@ -37,7 +37,7 @@ then each score is averaged over the scenes where it is defined. Also reported: 
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
 slots) and slots_used (foreground slots that win a pixel of view 0). --refine N refines the \
 latents on view 0 before rendering, as colf-encode --refine does (view 0 only: the novel views \
-stay unseen); the JSON records refine_steps. The JSON object goes to \
+stay unseen); the JSON records refine_steps and, when refining, the refine settings. The JSON object goes to \
 stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
 masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
@@ -228,6 +228,15 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["slots"] = serde_json::json!(slots);
     doc["tries"] = serde_json::json!(args.fit.tries);
     doc["refine_steps"] = serde_json::json!(args.fit.refine);
+    if args.fit.refine > 0 {
+        // The settings a refined score depends on, so a metrics file says how it was made.
+        doc["refine"] = serde_json::json!({
+            "lr": args.fit.refine_lr,
+            "frame_lr": args.fit.refine_frame_lr,
+            "rays": args.fit.refine_rays,
+            "anchor": args.fit.refine_anchor,
+        });
+    }
     if args.per_scene {
         doc["per_scene"] = serde_json::to_value(&rows)?;
     }
