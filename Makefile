@@ -56,7 +56,7 @@ demo: build
 	@mkdir -p $(DEMO)
 	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q
 	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
-	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.003 --refine 50 -o $(DEMO)/scene.codes
+	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.001 --refine 50 -o $(DEMO)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json
 	$(RELEASE)/colf-edit examples/demo-edits.json $(DEMO)/scene.codes -o $(DEMO)/edited.codes
 	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO)/orbit.json
