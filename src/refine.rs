@@ -201,7 +201,6 @@ pub fn refine_latents(
     let fixed = (per_step == n && !move_frames)
         .then(|| batch(model, slot_to_world, &origins, &dirs, &image.data, None))
         .transpose()?;
-    let all: Vec<usize> = (0..n).collect();
     let mut frames = slot_to_world.to_vec();
     // The frame origins' offsets from `frames` (foreground slots; axis-major [3, K]), always
     // zero when read: each step's update is moved into `frames`.
@@ -220,7 +219,7 @@ pub fn refine_latents(
             Some(b) => (&b.0, &b.1),
             None => {
                 let pick: Vec<usize> = if per_step == n {
-                    all.clone()
+                    (0..n).collect()
                 } else {
                     (0..per_step).map(|_| rng.random_range(0..n)).collect()
                 };
