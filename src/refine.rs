@@ -19,8 +19,9 @@ use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
-/// How to refine.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// How to refine (serialised as is into colf-eval's JSON, so a refined score says how it was
+/// made).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct RefineOptions {
     /// Adam steps (0: no refinement).
     pub steps: usize,

@@ -182,16 +182,17 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let total = args.scenes.map_or(dataset.len(), |n| n.min(dataset.len()));
     let started = std::time::Instant::now();
     let mut render_error = None;
+    let options = crate::evaluate::EvalOptions {
+        num_slots: slots,
+        seed: args.seed,
+        tries: args.fit.tries,
+        refine: args.fit.options(args.seed),
+    };
     let (scores, rows) = crate::evaluate::evaluate(
         &model,
         &dataset,
         args.scenes,
-        &crate::evaluate::EvalOptions {
-            num_slots: slots,
-            seed: args.seed,
-            tries: args.fit.tries,
-            refine: args.fit.options(args.seed),
-        },
+        &options,
         |i, row, renders| {
             if let Some(dir) = &args.renders {
                 for (v, frame) in renders.iter().enumerate() {
@@ -228,14 +229,8 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["slots"] = serde_json::json!(slots);
     doc["tries"] = serde_json::json!(args.fit.tries);
     doc["refine_steps"] = serde_json::json!(args.fit.refine);
-    if args.fit.refine > 0 {
-        // The settings a refined score depends on, so a metrics file says how it was made.
-        doc["refine"] = serde_json::json!({
-            "lr": args.fit.refine_lr,
-            "frame_lr": args.fit.refine_frame_lr,
-            "rays": args.fit.refine_rays,
-            "anchor": args.fit.refine_anchor,
-        });
+    if options.refine.steps > 0 {
+        doc["refine"] = serde_json::to_value(options.refine)?;
     }
     if args.per_scene {
         doc["per_scene"] = serde_json::to_value(&rows)?;
