@@ -341,6 +341,41 @@ fn checkpoints_round_trip_and_are_reproducible() {
     assert_ne!(t.to_bytes().unwrap().0, bytes);
 }
 
+#[test]
+fn reconfigured_keeps_weights_and_refuses_shape_changes() {
+    let cfg = tiny();
+    let a = Colf::init(&cfg, 5).unwrap();
+    let more_slots = cfg
+        .with_overrides(&["default_slots=9".to_string()])
+        .unwrap();
+    let b = a.reconfigured(&more_slots, "m").unwrap();
+    assert_eq!(b.config().default_slots, 9);
+    for ((name_a, ta), (name_b, tb)) in a.parameters().iter().zip(b.parameters()) {
+        assert_eq!(name_a, name_b);
+        let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(flat(ta), flat(tb), "{name_a}");
+    }
+    assert_ne!(
+        b.identity().unwrap(),
+        a.identity().unwrap(),
+        "the config is part of the identity"
+    );
+    let (bytes, id) = b.to_bytes().unwrap();
+    assert_eq!(
+        Colf::from_bytes(&bytes, "b").unwrap().identity().unwrap(),
+        id
+    );
+    let wider = cfg
+        .with_overrides(&[format!("lfn_hidden={}", 2 * cfg.lfn_hidden)])
+        .unwrap();
+    let Err(err) = a.reconfigured(&wider, "m.safetensors") else {
+        panic!("a wider light field was accepted");
+    };
+    let err = err.to_string();
+    assert!(err.starts_with("m.safetensors: "), "{err}");
+    assert!(err.contains("does not match its config"), "{err}");
+}
+
 /// Rewrites a model file with changed tensors/metadata via the crate's writer.
 fn rewrite(
     bytes: &[u8],

@@ -137,8 +137,9 @@ pub struct RunArgs {
     #[arg(long)]
     pub zero_background: bool,
 
-    /// Override a field of a fresh model's config, KEY=VALUE (repeatable; keys as in
-    /// docs/model.md, e.g. `--set ray_fourier_freqs=6`). Ignored with --init or --resume.
+    /// Override a field of the model's config, KEY=VALUE (repeatable; keys as in
+    /// docs/model.md, e.g. `--set ray_fourier_freqs=6`). With --init, only settings that keep
+    /// every tensor's shape (e.g. `--set default_slots=10`); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,
 

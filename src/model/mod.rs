@@ -315,14 +315,35 @@ impl Colf {
     /// Reads a model file (`name` is used in errors).
     pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Colf> {
         let ckpt = checkpoint::from_bytes(bytes, name)?;
+        let tensors = ckpt.tensors.into_iter().collect();
+        Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)
+    }
+
+    /// The same weights under another config — one that gives every tensor the same name and
+    /// shape (e.g. another `default_slots`); anything else is refused, naming `name`.
+    pub fn reconfigured(&self, cfg: &Config, name: &str) -> Result<Colf> {
+        cfg.validate()?;
+        Colf::build(cfg.clone(), self.params.clone(), None, name)
+    }
+
+    /// Builds the module tree of `cfg` on `tensors`, checking that the tensors are exactly the
+    /// ones it asks for. `identity`: the file's, already checked; else computed.
+    fn build(
+        cfg: Config,
+        tensors: BTreeMap<String, Tensor>,
+        identity: Option<String>,
+        name: &str,
+    ) -> Result<Colf> {
         let device = Device::Cpu;
-        let checked = std::sync::Arc::new(init::CheckedTensors::new(ckpt.tensors.clone()));
+        let checked = std::sync::Arc::new(init::CheckedTensors::new(
+            tensors.clone().into_iter().collect(),
+        ));
         let vb = VarBuilder::from_backend(
             Box::new(SharedBackend(checked.clone())),
             DType::F32,
             device.clone(),
         );
-        let built = ColfModel::new(&ckpt.config, vb);
+        let built = ColfModel::new(&cfg, vb);
         let problems = checked.problems();
         if let Some(first) = problems.first() {
             let more = if problems.len() > 1 {
@@ -333,11 +354,15 @@ impl Colf {
             bail!("{name}: {first}{more}; the file does not match its config");
         }
         let model = built.map_err(|e| anyhow!("{name}: {e}"))?;
+        let identity = match identity {
+            Some(id) => id,
+            None => checkpoint::identity(&cfg.to_json(), &checkpoint::to_host(&tensors)?),
+        };
         Ok(Colf {
             model,
-            params: ckpt.tensors.into_iter().collect(),
+            params: tensors,
             vars: None,
-            identity: ckpt.identity,
+            identity,
             device,
         })
     }

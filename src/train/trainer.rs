@@ -213,7 +213,16 @@ impl Trainer {
             (colf, Some(bytes), step, bad)
         } else {
             let colf = match &opts.init {
-                Some(p) => Colf::load(p)?,
+                Some(p) => {
+                    let colf = Colf::load(p)?;
+                    if opts.config_overrides.is_empty() {
+                        colf
+                    } else {
+                        let cfg = colf.config().with_overrides(&opts.config_overrides)?;
+                        colf.reconfigured(&cfg, &p.display().to_string())
+                            .context("--set with --init may change only settings that keep every tensor's shape")?
+                    }
+                }
                 None => {
                     let mut cfg =
                         Config::preset(&opts.preset)?.with_overrides(&opts.config_overrides)?;
