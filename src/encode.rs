@@ -92,6 +92,14 @@ fn encode_once(
     Ok((slots, encoded.bg_latent))
 }
 
+/// One try of [`encode_image_report`]: the slots, the background latent, and what refinement
+/// did to them.
+struct Encoding {
+    slots: Vec<Slot>,
+    background: Vec<f32>,
+    report: Option<RefineReport>,
+}
+
 /// Encodes `image` with `model`; also returns what refinement did, if it ran.
 pub fn encode_image_report(
     model: &Colf,
@@ -119,7 +127,7 @@ pub fn encode_image_report(
     // Each try is a whole encoding, refinement included, judged by its input-view error: on
     // 10 held-out scenes, judging after refinement kept better encodings than judging before
     // it (novel views 27.70 against 27.53 dB with 4 tries and 50 steps).
-    let mut best: Option<(f64, Vec<Slot>, Vec<f32>, Option<RefineReport>)> = None;
+    let mut best: Option<(f64, Encoding)> = None;
     for t in 0..opts.tries {
         let seed = opts.seed.wrapping_add(t as u64);
         let (mut slots, mut background) = encode_once(model, image, &camera, opts, seed)?;
@@ -143,17 +151,37 @@ pub fn encode_image_report(
         } else {
             None
         };
+        let encoding = Encoding {
+            slots,
+            background,
+            report,
+        };
         if opts.tries == 1 {
-            best = Some((0.0, slots, background, report));
+            best = Some((0.0, encoding));
             break;
         }
-        let (latents, frames) = latents_and_frames(&slots);
-        let error = input_view_mse(model, &latents, &background, &frames, &camera, image)?;
-        if best.as_ref().is_none_or(|(e, ..)| error < *e) {
-            best = Some((error, slots, background, report));
+        let (latents, frames) = latents_and_frames(&encoding.slots);
+        let error = input_view_mse(
+            model,
+            &latents,
+            &encoding.background,
+            &frames,
+            &camera,
+            image,
+        )?;
+        if best.as_ref().is_none_or(|(e, _)| error < *e) {
+            best = Some((error, encoding));
         }
     }
-    let Some((_, slots, background, report)) = best else {
+    let Some((
+        _,
+        Encoding {
+            slots,
+            background,
+            report,
+        },
+    )) = best
+    else {
         bail!("no encoding was made");
     };
     Ok((

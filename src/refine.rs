@@ -141,6 +141,26 @@ pub fn refine_latents(
     image: &RgbImage32,
     opts: &RefineOptions,
 ) -> Result<RefineReport> {
+    refine_latents_on_views(
+        model,
+        fg_latents,
+        bg_latent,
+        slot_to_world,
+        &[(camera, image)],
+        opts,
+    )
+}
+
+/// [`refine_latents`] against several views of the scene at once: each step draws its pixels
+/// from all of them.
+pub fn refine_latents_on_views(
+    model: &Colf,
+    fg_latents: &mut [Vec<f32>],
+    bg_latent: &mut Vec<f32>,
+    slot_to_world: &mut [DMat4],
+    views: &[(&Frame, &RgbImage32)],
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
     if !(opts.lr.is_finite() && opts.lr > 0.0) {
         bail!("--refine-lr must be a positive number, not {}", opts.lr);
     }
@@ -158,6 +178,9 @@ pub fn refine_latents(
             "--refine-frame-lr must be a number ≥ 0, not {}",
             opts.frame_lr
         );
+    }
+    if views.iter().all(|(_, image)| image.data.is_empty()) {
+        bail!("refinement needs at least one view with pixels");
     }
     let net = model.model();
     let cfg = model.config();
@@ -193,14 +216,20 @@ pub fn refine_latents(
             ..AdamConfig::default()
         },
     )?;
-    let (origins, dirs) = pixel_rays(camera, image);
+    let (mut origins, mut dirs, mut colours) = (Vec::new(), Vec::new(), Vec::new());
+    for (camera, image) in views {
+        let (o, d) = pixel_rays(camera, image);
+        origins.extend(o);
+        dirs.extend(d);
+        colours.extend_from_slice(&image.data);
+    }
     let n = origins.len();
     let per_step = opts.rays.min(n);
     let mut rng = StdRng::seed_from_u64(opts.seed);
     let move_frames = opts.frame_lr > 0.0;
     // Every pixel once and fixed frames: one batch for all steps.
     let fixed = (per_step == n && !move_frames)
-        .then(|| batch(model, slot_to_world, &origins, &dirs, &image.data, None))
+        .then(|| batch(model, slot_to_world, &origins, &dirs, &colours, None))
         .transpose()?;
     let mut frames = slot_to_world.to_vec();
     // The frame origins' offsets from `frames` (foreground slots; axis-major [3, K]), always
@@ -225,9 +254,9 @@ pub fn refine_latents(
                     (0..per_step).map(|_| rng.random_range(0..n)).collect()
                 };
                 drawn = if move_frames {
-                    linearised_batch(model, &frames, &offset, &origins, &dirs, &image.data, &pick)?
+                    linearised_batch(model, &frames, &offset, &origins, &dirs, &colours, &pick)?
                 } else {
-                    batch(model, &frames, &origins, &dirs, &image.data, Some(&pick))?
+                    batch(model, &frames, &origins, &dirs, &colours, Some(&pick))?
                 };
                 (&drawn.0, &drawn.1)
             }
@@ -452,6 +481,46 @@ mod tests {
         );
         assert_ne!(fg, start);
         assert_eq!(run().0, fg, "the same inputs give the same latents");
+    }
+
+    #[test]
+    fn refining_on_two_copies_of_a_view_is_refining_on_it() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(12);
+        let bg = vec![0.0; d];
+        let image = target(&model, &latents(2, d, 1), &bg, &cam);
+        // Every pixel each step and fixed frames: the loss is the same mean either way.
+        let opts = RefineOptions {
+            steps: 5,
+            lr: 0.05,
+            rays: 2 * 12 * 12,
+            frame_lr: 0.0,
+            ..Default::default()
+        };
+        let run = |views: &[(&Frame, &RgbImage32)]| {
+            let (mut fg, mut bg, mut frames) =
+                (latents(2, d, 2), bg.clone(), vec![cam.camera_to_world; 2]);
+            refine_latents_on_views(&model, &mut fg, &mut bg, &mut frames, views, &opts).unwrap();
+            fg
+        };
+        let one = run(&[(&cam, &image)]);
+        let two = run(&[(&cam, &image), (&cam, &image)]);
+        assert_ne!(one, latents(2, d, 2));
+        for (a, b) in one.iter().flatten().zip(two.iter().flatten()) {
+            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        }
+        let empty = RgbImage32 {
+            w: 0,
+            h: 0,
+            data: Vec::new(),
+        };
+        let (mut fg, mut bg, mut frames) = (latents(2, d, 2), bg.clone(), vec![DMat4::IDENTITY; 2]);
+        for views in [&[][..], &[(&cam, &empty)][..]] {
+            let err = refine_latents_on_views(&model, &mut fg, &mut bg, &mut frames, views, &opts)
+                .unwrap_err();
+            assert!(err.to_string().contains("at least one view"), "{err}");
+        }
     }
 
     #[test]
