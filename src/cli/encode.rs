@@ -24,8 +24,8 @@ as seen by its camera: the encoder's latents are a one-pass guess for any scene,
 fit this one. Only IMAGE is used, so novel views stay predictions; see the README, \
 \"Refinement\", for the measured gain in novel views and the time per image. Too many steps or too \
 high a --refine-lr fit the input view at the expense of novel views. --tries N encodes N times \
-(slot noise seeds --seed, --seed + 1, ...), refines each when --refine is given, and keeps the \
-encoding whose render of IMAGE is closest to it (N tries cost N refinements).\n\n\
+(slot noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is \
+closest to it, before any refinement.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \

@@ -44,8 +44,8 @@ pub fn commands() -> Vec<clap::Command> {
 /// How an encoding is fitted to its input image, shared by `colf-encode` and `colf-eval --data`.
 #[derive(clap::Args, Debug, Clone)]
 pub struct FitArgs {
-    /// Encode N times (slot noise seeds S, S+1, ...), refining each when refining, and keep the
-    /// encoding that reconstructs the input image best.
+    /// Encode N times (slot noise seeds S, S+1, ...) and keep the encoding that reconstructs the
+    /// input image best.
     #[arg(long, default_value_t = 1, value_name = "N")]
     pub tries: usize,
 
