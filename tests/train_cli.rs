@@ -147,3 +147,48 @@ fn sigterm_checkpoints_and_the_log_plots() {
     let img = colf::image_io::read_rgb(png.to_str().unwrap()).unwrap();
     assert_eq!((img.w, img.h), (1000, 700));
 }
+
+#[test]
+fn set_with_init_changes_only_shape_keeping_settings() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let start = dir.path().join("start.safetensors");
+    train(&data, &start, 1, &[]);
+    // A setting that keeps every tensor's shape carries into the new model.
+    let out = dir.path().join("more-slots.safetensors");
+    train(
+        &data,
+        &out,
+        1,
+        &[
+            "--init",
+            start.to_str().unwrap(),
+            "--set",
+            "default_slots=9",
+        ],
+    );
+    assert_eq!(
+        colf::model::Colf::load(&out)
+            .unwrap()
+            .config()
+            .default_slots,
+        9
+    );
+    // One that changes a shape is one clear error line, exit 1, and no output file.
+    let wider = dir.path().join("wider.safetensors");
+    let assert = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("--data")
+        .arg(&data)
+        .arg("--init")
+        .arg(&start)
+        .args(["--set", "lfn_hidden=64", "--steps", "1", "--out"])
+        .arg(&wider)
+        .assert()
+        .code(1);
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("--set with --init"), "{stderr}");
+    assert!(stderr.contains("start.safetensors"), "{stderr}");
+    assert!(!wider.exists());
+}
