@@ -1,6 +1,6 @@
 //! How much of the novel-view error is the decoder, and how much is inferring a scene from one
 //! image? For each held-out scene, view 0 is encoded as `colf-eval` does, then the latents and
-//! frame origins are refined on the first V views (`colf::refine::refine_latents_on_views`) and
+//! frame origins are refined on the first V views (`colf::encode::refine_slots`) and
 //! every view is rendered. Printed per V, as the mean over scenes:
 //! - `fitted`: PSNR of the views the latents were fitted to (how well the decoder can draw a
 //!   scene whose latents are chosen for those views);
@@ -12,10 +12,11 @@
 
 use anyhow::{bail, Context, Result};
 use colf::dataset::Dataset;
-use colf::evaluate::{encode_and_render, EvalOptions};
+use colf::encode::refine_slots;
+use colf::evaluate::{encode_scene, EvalOptions};
 use colf::metrics::psnr;
 use colf::model::Colf;
-use colf::refine::{refine_latents_on_views, RefineOptions};
+use colf::refine::RefineOptions;
 use colf::render::PreparedScene;
 use std::path::PathBuf;
 
@@ -97,27 +98,18 @@ fn main() -> Result<()> {
                     scene.views.len()
                 );
             }
-            let (mut codes, _) = encode_and_render(&model, &scene, &eval)?;
-            let mut latents: Vec<Vec<f32>> = codes.slots.iter().map(|s| s.latent.clone()).collect();
-            let mut frames: Vec<_> = codes.slots.iter().map(|s| s.slot_to_world).collect();
+            let mut codes = encode_scene(&model, &scene, &eval)?;
             let views: Vec<_> = scene.views[..fit]
                 .iter()
                 .map(|v| (&v.frame, &v.image))
                 .collect();
-            refine_latents_on_views(
+            refine_slots(
                 &model,
-                &mut latents,
+                &mut codes.slots,
                 &mut codes.background,
-                &mut frames,
                 &views,
                 &refine,
             )?;
-            for (slot, (latent, frame)) in
-                codes.slots.iter_mut().zip(latents.into_iter().zip(frames))
-            {
-                slot.latent = latent;
-                slot.slot_to_world = frame;
-            }
             let prepared = PreparedScene::new(&model, &codes, &scene.name)?;
             for (v, view) in scene.views.iter().enumerate() {
                 let render = prepared.render_frame(&model, &view.frame)?;

@@ -4,7 +4,7 @@ use crate::camera::{Frame, Intrinsics};
 use crate::codes::{Codes, Slot};
 use crate::image_io::RgbImage32;
 use crate::model::Colf;
-use crate::refine::{input_view_mse, refine_latents, RefineOptions, RefineReport};
+use crate::refine::{input_view_mse, refine_latents_on_views, RefineOptions, RefineReport};
 use anyhow::{bail, Result};
 
 /// Largest slot count `colf-encode` accepts: slot attention runs with any K, but beyond this a
@@ -20,6 +20,25 @@ fn latents_and_frames(slots: &[Slot]) -> (Vec<Vec<f32>>, Vec<glam::DMat4>) {
         .iter()
         .map(|s| (s.latent.clone(), s.slot_to_world))
         .unzip()
+}
+
+/// Refines `slots` (latents and frames) and `background` against `views`, in place; see
+/// [`refine_latents_on_views`].
+pub fn refine_slots(
+    model: &Colf,
+    slots: &mut [Slot],
+    background: &mut Vec<f32>,
+    views: &[(&Frame, &RgbImage32)],
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
+    let (mut latents, mut frames) = latents_and_frames(slots);
+    let report =
+        refine_latents_on_views(model, &mut latents, background, &mut frames, views, opts)?;
+    for ((slot, latent), frame) in slots.iter_mut().zip(latents).zip(frames) {
+        slot.latent = latent;
+        slot.slot_to_world = frame;
+    }
+    Ok(report)
 }
 
 /// How to encode one image.
@@ -143,21 +162,14 @@ pub fn encode_image_report(
     };
     let report = if opts.refine.steps > 0 {
         // After pruning: the kept slots learn to cover what the dropped ones rendered.
-        let (mut latents, mut frames) = latents_and_frames(&slots);
-        let report = refine_latents(
+        let views = [(&camera, image)];
+        Some(refine_slots(
             model,
-            &mut latents,
+            &mut slots,
             &mut background,
-            &mut frames,
-            &camera,
-            image,
+            &views,
             &opts.refine,
-        )?;
-        for ((slot, latent), frame) in slots.iter_mut().zip(latents).zip(frames) {
-            slot.latent = latent;
-            slot.slot_to_world = frame;
-        }
-        Some(report)
+        )?)
     } else {
         None
     };

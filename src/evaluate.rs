@@ -85,16 +85,12 @@ pub struct EvalOptions {
     pub refine: RefineOptions,
 }
 
-/// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
-pub fn encode_and_render(
-    model: &Colf,
-    scene: &SceneData,
-    opts: &EvalOptions,
-) -> Result<(Codes, Vec<FrameRender>)> {
+/// Encodes view 0 of `scene` as the protocol does (slots placed with view 0's camera).
+pub fn encode_scene(model: &Colf, scene: &SceneData, opts: &EvalOptions) -> Result<Codes> {
     let Some(input) = scene.views.first() else {
         bail!("scene {} has no views", scene.name);
     };
-    let codes = encode_image(
+    encode_image(
         model,
         &input.image,
         &EncodeOptions {
@@ -106,7 +102,16 @@ pub fn encode_and_render(
             tries: opts.tries.max(1),
             refine: opts.refine,
         },
-    )?;
+    )
+}
+
+/// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
+pub fn encode_and_render(
+    model: &Colf,
+    scene: &SceneData,
+    opts: &EvalOptions,
+) -> Result<(Codes, Vec<FrameRender>)> {
+    let codes = encode_scene(model, scene, opts)?;
     let prepared = PreparedScene::new(model, &codes, &scene.name)?;
     let renders = scene
         .views
