@@ -32,6 +32,7 @@ fn tiny() -> Config {
         compositor_hidden_layers: 1,
         scene_scale: 4.0,
         zero_background: false,
+        static_background: false,
         hypernet_rms_norm: true,
         attention_frames: false,
         fg_locality: 0.0,
@@ -85,7 +86,12 @@ fn all_finite(v: &[f32]) -> bool {
 #[test]
 fn every_parameter_receives_a_gradient() {
     let cfg = tiny();
-    let colf = Colf::init(&cfg, 1).unwrap().into_trainable().unwrap();
+    assert_gradients_reach_every_parameter(Colf::init(&cfg, 1).unwrap());
+}
+
+/// Slot latents and light fields of two test images (the second inverted), 3 foreground slots.
+fn prepared_fields(colf: &Colf) -> (colf::model::SlotWeights, RayBatch) {
+    let cfg = colf.config().clone();
     let model = colf.model();
     let dev = Device::Cpu;
     let s = cfg.encoder_size;
@@ -122,7 +128,16 @@ fn every_parameter_receives_a_gradient() {
         &dev,
     )
     .unwrap();
-    let out = model.decode(&fields, &rays).unwrap();
+    (fields, rays)
+}
+
+/// A loss on two rendered views of `colf`'s model sends a non-zero gradient to every
+/// parameter; returns the gradients by parameter name.
+fn assert_gradients_reach_every_parameter(colf: Colf) -> Vec<(String, Tensor)> {
+    let colf = colf.into_trainable().unwrap();
+    let dev = Device::Cpu;
+    let (fields, rays) = prepared_fields(&colf);
+    let out = colf.model().decode(&fields, &rays).unwrap();
     let target = Tensor::full(0.3f32, out.rgb.shape(), &dev).unwrap();
     let loss = (out.rgb - target)
         .unwrap()
@@ -134,24 +149,92 @@ fn every_parameter_receives_a_gradient() {
     let vars = colf.named_vars();
     assert_eq!(vars.len(), colf.parameters().len());
     let mut missing = Vec::new();
+    let mut all = Vec::new();
     for (name, var) in &vars {
-        let nonzero = grads
-            .get(var.as_tensor())
-            .map(|g| {
-                g.abs()
-                    .unwrap()
-                    .sum_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap()
-                    > 0.0
-            })
-            .unwrap_or(false);
-        if !nonzero {
-            missing.push(name.clone());
+        match grads.get(var.as_tensor()) {
+            Some(g) if abs_sum(g) > 0.0 => all.push((name.clone(), g.clone())),
+            _ => missing.push(name.clone()),
         }
     }
     assert!(missing.is_empty(), "no gradient reached: {missing:?}");
+    all
+}
+
+fn abs_sum(t: &Tensor) -> f32 {
+    t.abs()
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+}
+
+#[test]
+fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
+    let cfg = Config {
+        zero_background: true,
+        ..tiny()
+    };
+    let small = Colf::init(&cfg, 3).unwrap();
+    let grown_cfg = cfg
+        .with_overrides(&[
+            "static_background=true".to_string(),
+            format!("hypernet_hidden={}", 2 * cfg.hypernet_hidden),
+        ])
+        .unwrap();
+    let grown = small.reconfigured(&grown_cfg, 4, "m").unwrap();
+    let grown_id = grown.identity().unwrap();
+    assert!(grown
+        .parameters()
+        .keys()
+        .all(|k| !k.starts_with("hypernet_bg.")));
+    assert!(grown
+        .parameters()
+        .contains_key("background_field.layers.0.weight"));
+    let (before, _) = prepared_fields(&small);
+    let (after, _) = prepared_fields(&grown);
+    for (lb, la) in before.layers.iter().zip(&after.layers) {
+        for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
+            let gap = abs_sum(&(tb - ta).unwrap()) / abs_sum(tb);
+            assert!(gap < 1e-5, "generated light fields changed: {gap}");
+        }
+    }
+    // The new hidden units' output weights start at zero and receive gradients.
+    let grads = assert_gradients_reach_every_parameter(grown);
+    let (_, head) = grads
+        .iter()
+        .find(|(n, _)| n == "hypernet_fg.layers.0.weight.weight")
+        .unwrap();
+    let new_columns = head
+        .narrow(1, cfg.hypernet_hidden, cfg.hypernet_hidden)
+        .unwrap();
+    assert!(abs_sum(&new_columns) > 0.0);
+    // Growing is seeded, and shrinking or undoing is refused by name.
+    let again = small.reconfigured(&grown_cfg, 4, "m").unwrap();
+    assert_eq!(again.identity().unwrap(), grown_id);
+    let narrower = grown_cfg
+        .with_overrides(&[format!("hypernet_hidden={}", cfg.hypernet_hidden)])
+        .unwrap();
+    let err = again
+        .reconfigured(&narrower, 4, "m.safetensors")
+        .err()
+        .unwrap();
+    assert!(err.to_string().starts_with("m.safetensors: "), "{err}");
+    let not_zero = Colf::init(&tiny(), 3).unwrap();
+    let err = not_zero
+        .reconfigured(
+            &tiny()
+                .with_overrides(&[
+                    "zero_background=true".into(),
+                    "static_background=true".into(),
+                ])
+                .unwrap(),
+            4,
+            "n.safetensors",
+        )
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("zero background"), "{err}");
 }
 
 #[test]
@@ -348,7 +431,7 @@ fn reconfigured_keeps_weights_and_refuses_shape_changes() {
     let more_slots = cfg
         .with_overrides(&["default_slots=9".to_string()])
         .unwrap();
-    let b = a.reconfigured(&more_slots, "m").unwrap();
+    let b = a.reconfigured(&more_slots, 0, "m").unwrap();
     assert_eq!(b.config().default_slots, 9);
     for ((name_a, ta), (name_b, tb)) in a.parameters().iter().zip(b.parameters()) {
         assert_eq!(name_a, name_b);
@@ -368,7 +451,7 @@ fn reconfigured_keeps_weights_and_refuses_shape_changes() {
     let wider = cfg
         .with_overrides(&[format!("lfn_hidden={}", 2 * cfg.lfn_hidden)])
         .unwrap();
-    let Err(err) = a.reconfigured(&wider, "m.safetensors") else {
+    let Err(err) = a.reconfigured(&wider, 0, "m.safetensors") else {
         panic!("a wider light field was accepted");
     };
     let err = err.to_string();

@@ -149,7 +149,7 @@ fn sigterm_checkpoints_and_the_log_plots() {
 }
 
 #[test]
-fn set_with_init_changes_only_shape_keeping_settings() {
+fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
     let dir = tempfile::tempdir().unwrap();
     let data = data(dir.path());
     let start = dir.path().join("start.safetensors");
@@ -191,4 +191,29 @@ fn set_with_init_changes_only_shape_keeping_settings() {
     assert!(stderr.contains("--set with --init"), "{stderr}");
     assert!(stderr.contains("start.safetensors"), "{stderr}");
     assert!(!wider.exists());
+    // A zero-background model grows: its background becomes fixed weights and the foreground
+    // hypernetwork gets more hidden units (same function at the start; see model_core.rs).
+    let zero_bg = dir.path().join("zero-bg.safetensors");
+    train(&data, &zero_bg, 1, &["--zero-background"]);
+    let grown = dir.path().join("grown.safetensors");
+    train(
+        &data,
+        &grown,
+        1,
+        &[
+            "--init",
+            zero_bg.to_str().unwrap(),
+            "--set",
+            "static_background=true",
+            "--set",
+            "hypernet_hidden=96",
+        ],
+    );
+    let grown = colf::model::Colf::load(&grown).unwrap();
+    assert!(grown.config().static_background);
+    assert_eq!(grown.config().hypernet_hidden, 96);
+    assert!(grown
+        .parameters()
+        .keys()
+        .all(|k| !k.starts_with("hypernet_bg.")));
 }

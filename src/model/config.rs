@@ -61,6 +61,13 @@ pub struct Config {
     /// older files (= false), and not written when false, so their identity is unchanged.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub zero_background: bool,
+    /// With `zero_background`: the background light field's weights are parameters of their own
+    /// (`background_field.`), not a hypernetwork's output. A hypernetwork fed a constant zero
+    /// latent only ever produces one set of weights, so this is the same family of models with
+    /// ~30 thousand background parameters instead of ~2 million (room for a larger foreground
+    /// decoder within the same file size). Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub static_background: bool,
     /// Divide each slot latent by its root-mean-square before the hypernetworks, so the scale
     /// of the generated light-field weights does not follow the scale of the latent (slot
     /// latents reach norms of ~20 and vary between scenes; without this, training was spiky).
@@ -178,6 +185,7 @@ impl Config {
             compositor_hidden_layers: 1,
             scene_scale: 8.0,
             zero_background: false,
+            static_background: false,
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
@@ -211,6 +219,7 @@ impl Config {
             compositor_hidden_layers: 3,
             scene_scale: 8.0,
             zero_background: false,
+            static_background: false,
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
@@ -323,6 +332,9 @@ impl Config {
         }
         if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
             bail!("model config: `scene_scale` must be a positive number");
+        }
+        if self.static_background && !self.zero_background {
+            bail!("model config: `static_background` needs `zero_background` (an image-dependent background needs its hypernetwork)");
         }
         if let Some(v) = &self.volumetric {
             v.validate()?;

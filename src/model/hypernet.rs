@@ -110,3 +110,87 @@ impl HyperNet {
             .collect()
     }
 }
+
+/// The background light field of a `static_background` model: its weights are parameters,
+/// initialised like a hypernetwork's output at a typical latent (Kaiming scale). Tensor names
+/// (prefix `background_field.`): `layers.{l}.weight` [in, out] and `layers.{l}.bias` [out].
+#[derive(Clone, Debug)]
+pub struct StaticField {
+    layers: Vec<(Tensor, Tensor)>,
+}
+
+impl StaticField {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<StaticField> {
+        let dims = cfg.lfn_dims();
+        let mut layers = Vec::new();
+        for l in 0..dims.len() - 1 {
+            let (fan_in, fan_out) = (dims[l], dims[l + 1]);
+            let gain = if l + 2 == dims.len() {
+                1.0
+            } else {
+                2f64.sqrt()
+            };
+            // Uniform with the Kaiming variance σ²: bound √3·σ.
+            let bound = 3f64.sqrt() * gain / (fan_in as f64).sqrt();
+            let vb_l = vb.pp(format!("layers.{l}"));
+            let weight = vb_l.get_with_hints(
+                (fan_in, fan_out),
+                "weight",
+                Init::Uniform {
+                    lo: -bound,
+                    up: bound,
+                },
+            )?;
+            let bias = vb_l.get_with_hints(fan_out, "bias", Init::Const(0.0))?;
+            layers.push((weight, bias));
+        }
+        Ok(StaticField { layers })
+    }
+
+    /// The same light field for each of `count` scenes.
+    pub fn forward(&self, count: usize) -> Result<Vec<GeneratedLayer>> {
+        self.layers
+            .iter()
+            .map(|(weight, bias)| {
+                let (i, o) = weight.dims2()?;
+                Ok(GeneratedLayer {
+                    weight: weight
+                        .unsqueeze(0)?
+                        .broadcast_as((count, i, o))?
+                        .contiguous()?,
+                    bias: bias
+                        .reshape((1, 1, o))?
+                        .broadcast_as((count, 1, o))?
+                        .contiguous()?,
+                })
+            })
+            .collect()
+    }
+}
+
+/// Where the background slot's light field comes from.
+#[derive(Clone, Debug)]
+pub enum BackgroundField {
+    /// A hypernetwork of the background latent (`hypernet_bg.`).
+    HyperNet(HyperNet),
+    /// Fixed weights (`background_field.`; `Config::static_background`).
+    Static(StaticField),
+}
+
+impl BackgroundField {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<BackgroundField> {
+        Ok(if cfg.static_background {
+            BackgroundField::Static(StaticField::new(cfg, vb.pp("background_field"))?)
+        } else {
+            BackgroundField::HyperNet(HyperNet::new(cfg, vb.pp("hypernet_bg"))?)
+        })
+    }
+
+    /// latents [B, D] → the B background light fields.
+    pub fn forward(&self, latents: &Tensor) -> Result<Vec<GeneratedLayer>> {
+        match self {
+            BackgroundField::HyperNet(h) => h.forward(latents),
+            BackgroundField::Static(s) => s.forward(latents.dim(0)?),
+        }
+    }
+}

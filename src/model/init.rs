@@ -20,7 +20,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::sync::Mutex;
 
 /// A seed for one tensor: the first 8 bytes of sha256(seed ‖ name).
-fn tensor_seed(seed: u64, name: &str) -> u64 {
+pub fn tensor_seed(seed: u64, name: &str) -> u64 {
     let mut hasher = Sha256::new();
     hasher.update(seed.to_le_bytes());
     hasher.update(name.as_bytes());

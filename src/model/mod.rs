@@ -15,6 +15,7 @@ pub mod conv;
 pub mod encoder;
 pub mod frames;
 pub mod fused;
+pub mod grow;
 pub mod heads;
 pub mod hypernet;
 pub mod init;
@@ -39,7 +40,8 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 /// The differentiable model. Parameters live under `encoder.`, `slot_attention.` and the
-/// decoder's prefixes: `hypernet_fg.`, `hypernet_bg.`, `heads.` and `compositor.` for light
+/// decoder's prefixes: `hypernet_fg.`, `hypernet_bg.` (or `background_field.`), `heads.` and
+/// `compositor.` for light
 /// fields, `volumetric.` for the volumetric baseline (`Config::volumetric`).
 #[derive(Clone, Debug)]
 pub struct ColfModel {
@@ -62,7 +64,7 @@ pub enum Decoder {
 #[derive(Clone, Debug)]
 pub struct LightFieldDecoder {
     pub hypernet_fg: hypernet::HyperNet,
-    pub hypernet_bg: hypernet::HyperNet,
+    pub background: hypernet::BackgroundField,
     pub heads: heads::Heads,
     pub compositor: compositor::Compositor,
 }
@@ -108,7 +110,7 @@ impl ColfModel {
         } else {
             Decoder::LightField(Box::new(LightFieldDecoder {
                 hypernet_fg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_fg"))?,
-                hypernet_bg: hypernet::HyperNet::new(cfg, vb.pp("hypernet_bg"))?,
+                background: hypernet::BackgroundField::new(cfg, vb.clone())?,
                 heads: heads::Heads::new(cfg, vb.pp("heads"))?,
                 compositor: compositor::Compositor::new(cfg, vb.pp("compositor"))?,
             }))
@@ -167,7 +169,7 @@ impl ColfModel {
         let lf = self.light_field_or_err()?;
         let (b, k, d) = fg.dims3()?;
         let bg_w = SlotWeights {
-            layers: lf.hypernet_bg.forward(bg)?,
+            layers: lf.background.forward(bg)?,
         };
         if k == 0 {
             return Ok(bg_w);
@@ -319,11 +321,14 @@ impl Colf {
         Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)
     }
 
-    /// The same weights under another config — one that gives every tensor the same name and
-    /// shape (e.g. another `default_slots`); anything else is refused, naming `name`.
-    pub fn reconfigured(&self, cfg: &Config, name: &str) -> Result<Colf> {
+    /// The same model under another config: one that gives every tensor the same name and
+    /// shape (e.g. another `default_slots`), or that `grow.rs` can reach while computing the
+    /// same function (`static_background`, a wider `hypernet_hidden`; new weights drawn from
+    /// `seed`); anything else is refused, naming `name`.
+    pub fn reconfigured(&self, cfg: &Config, seed: u64, name: &str) -> Result<Colf> {
         cfg.validate()?;
-        Colf::build(cfg.clone(), self.params.clone(), None, name)
+        let tensors = grow::grow_tensors(&self.model, &self.params, cfg, seed, name)?;
+        Colf::build(cfg.clone(), tensors, None, name)
     }
 
     /// Builds the module tree of `cfg` on `tensors`, checking that the tensors are exactly the

@@ -219,14 +219,15 @@ impl Trainer {
                         colf
                     } else {
                         let cfg = colf.config().with_overrides(&opts.config_overrides)?;
-                        colf.reconfigured(&cfg, &p.display().to_string())
-                            .context("--set with --init may change only settings that keep every tensor's shape")?
+                        colf.reconfigured(&cfg, opts.seed, &p.display().to_string())
+                            .context("--set with --init may change only settings that keep every tensor's shape, turn on static_background or widen hypernet_hidden")?
                     }
                 }
                 None => {
-                    let mut cfg =
-                        Config::preset(&opts.preset)?.with_overrides(&opts.config_overrides)?;
-                    cfg.zero_background = opts.zero_background;
+                    // The flag first, so `--set static_background=true` (which needs it) validates.
+                    let mut preset = Config::preset(&opts.preset)?;
+                    preset.zero_background |= opts.zero_background;
+                    let cfg = preset.with_overrides(&opts.config_overrides)?;
                     Colf::init(&cfg, opts.seed)?
                 }
             };
