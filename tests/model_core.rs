@@ -131,6 +131,13 @@ fn prepared_fields(colf: &Colf) -> (colf::model::SlotWeights, RayBatch) {
     (fields, rays)
 }
 
+/// Colours and compositor weights of two views rendered by `colf`.
+fn rendered(colf: &Colf) -> [Tensor; 2] {
+    let (fields, rays) = prepared_fields(colf);
+    let out = colf.model().decode(&fields, &rays).unwrap();
+    [out.rgb, out.weights]
+}
+
 /// A loss on two rendered views of `colf`'s model sends a non-zero gradient to every
 /// parameter; returns the gradients by parameter name.
 fn assert_gradients_reach_every_parameter(colf: Colf) -> Vec<(String, Tensor)> {
@@ -197,6 +204,29 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
         for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
             let gap = abs_sum(&(tb - ta).unwrap()) / abs_sum(tb);
             assert!(gap < 1e-5, "generated light fields changed: {gap}");
+        }
+    }
+    // Wider light fields too, from a hypernetwork background or a static one: same renders.
+    let wider_fields = |c: &Config| {
+        c.with_overrides(&[format!("lfn_hidden={}", 2 * cfg.lfn_hidden)])
+            .unwrap()
+    };
+    let reference = rendered(&small);
+    for wide in [
+        small.reconfigured(&wider_fields(&cfg), 5, "m").unwrap(),
+        grown
+            .reconfigured(&wider_fields(&grown_cfg), 5, "m")
+            .unwrap(),
+    ] {
+        let out = rendered(&wide);
+        for (a, b) in reference.iter().zip(&out) {
+            let gap = abs_sum(&(a - b).unwrap()) / abs_sum(a);
+            assert!(gap < 1e-5, "renders changed: {gap}");
+        }
+        // (With a zero background latent, `hypernet_bg.fc1.weight` gets no gradient: static
+        // models only.)
+        if wide.config().static_background {
+            assert_gradients_reach_every_parameter(wide);
         }
     }
     // The new hidden units' output weights start at zero and receive gradients.
@@ -448,11 +478,11 @@ fn reconfigured_keeps_weights_and_refuses_shape_changes() {
         Colf::from_bytes(&bytes, "b").unwrap().identity().unwrap(),
         id
     );
-    let wider = cfg
-        .with_overrides(&[format!("lfn_hidden={}", 2 * cfg.lfn_hidden)])
+    let more_features = cfg
+        .with_overrides(&[format!("lfn_features={}", 2 * cfg.lfn_features)])
         .unwrap();
-    let Err(err) = a.reconfigured(&wider, 0, "m.safetensors") else {
-        panic!("a wider light field was accepted");
+    let Err(err) = a.reconfigured(&more_features, 0, "m.safetensors") else {
+        panic!("more light-field features were accepted");
     };
     let err = err.to_string();
     assert!(err.starts_with("m.safetensors: "), "{err}");

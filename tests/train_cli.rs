@@ -182,7 +182,7 @@ fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
         .arg(&data)
         .arg("--init")
         .arg(&start)
-        .args(["--set", "lfn_hidden=64", "--steps", "1", "--out"])
+        .args(["--set", "lfn_features=16", "--steps", "1", "--out"])
         .arg(&wider)
         .assert()
         .code(1);

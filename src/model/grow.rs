@@ -3,11 +3,14 @@
 //! - `static_background` on a zero-background model: the background hypernetwork's output at
 //!   the zero latent — the only light field it ever produced — becomes the background field's
 //!   weights (`background_field.`), and `hypernet_bg.` is dropped;
-//! - a wider `hypernet_hidden`: each hypernetwork's new hidden units get fresh input weights
-//!   (drawn like the existing ones, seeded by (seed, tensor name)) and zero output weights, so
-//!   every generated light field is unchanged until training moves them — and it can, since the
-//!   new units are active and their output weights receive gradients.
+//! - a wider `hypernet_hidden`: each hypernetwork's new hidden units get fresh input weights and
+//!   zero output weights;
+//! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
+//!   biases and zero outgoing weights (in a hypernetwork, the heads' rows that generate them).
 //!
+//! Zero outgoing weights keep every output unchanged until training moves them, and training can
+//! move them: the new units are active, so those weights receive gradients. Fresh values are
+//! drawn with the root-mean-square of the values they sit beside, seeded by (seed, tensor name).
 //! Anything else must keep every tensor's name and shape; `Colf::reconfigured` checks that.
 
 use super::config::Config;
@@ -56,18 +59,47 @@ pub fn grow_tensors(
     } else if old.static_background && !cfg.static_background {
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
     }
-    if cfg.hypernet_hidden != old.hypernet_hidden {
-        if cfg.hypernet_hidden < old.hypernet_hidden {
-            bail!(
-                "{name}: `hypernet_hidden` can grow ({} → more), not shrink",
-                old.hypernet_hidden
-            );
+    for (key, from, to) in [
+        ("hypernet_hidden", old.hypernet_hidden, cfg.hypernet_hidden),
+        ("lfn_hidden", old.lfn_hidden, cfg.lfn_hidden),
+    ] {
+        if to < from {
+            bail!("{name}: `{key}` can grow ({from} → more), not shrink");
         }
+    }
+    if cfg.hypernet_hidden > old.hypernet_hidden {
         for prefix in ["hypernet_fg.", "hypernet_bg."] {
             widen_hypernet(&mut out, prefix, cfg.hypernet_hidden, seed)?;
         }
     }
+    if cfg.lfn_hidden > old.lfn_hidden {
+        if cfg.lfn_hidden_layers != old.lfn_hidden_layers
+            || cfg.ray_fourier_freqs != old.ray_fourier_freqs
+        {
+            bail!("{name}: `lfn_hidden` grows only with the same `lfn_hidden_layers` and `ray_fourier_freqs`");
+        }
+        let grow = LayerGrowth {
+            old_dims: old.lfn_dims(),
+            new_dims: cfg.lfn_dims(),
+            seed,
+        };
+        for prefix in ["hypernet_fg.", "hypernet_bg."] {
+            grow.hypernet(&mut out, prefix)?;
+        }
+        grow.static_field(&mut out, "background_field.")?;
+    }
     Ok(out)
+}
+
+/// Values drawn from N(0, rms(`like`)²) in `shape`, seeded by (seed, `name`).
+fn fresh_like(like: &Tensor, shape: &[usize], seed: u64, name: &str) -> Result<Tensor> {
+    let values = like.flatten_all()?.to_vec1::<f32>()?;
+    let rms = (values.iter().map(|v| v * v).sum::<f32>() / values.len().max(1) as f32).sqrt();
+    let normal = Normal::new(0.0, rms.max(1e-6))?;
+    let mut rng = StdRng::seed_from_u64(tensor_seed(seed, &format!("grow:{name}")));
+    let n = shape.iter().product();
+    let drawn: Vec<f32> = (0..n).map(|_| normal.sample(&mut rng)).collect();
+    Ok(Tensor::from_vec(drawn, shape, &Device::Cpu)?)
 }
 
 /// Widens the hidden layer of the hypernetwork under `prefix` (if present) to `hidden` units.
@@ -84,36 +116,122 @@ fn widen_hypernet(
     };
     let (old_hidden, inputs) = weight.dims2()?;
     let extra = hidden - old_hidden;
-    let fresh = |name: &str, like: &Tensor, shape: &[usize]| -> Result<Tensor> {
-        let values = like.flatten_all()?.to_vec1::<f32>()?;
-        let std = (values.iter().map(|v| v * v).sum::<f32>() / values.len().max(1) as f32).sqrt();
-        let normal = Normal::new(0.0, std.max(1e-6))?;
-        let mut rng = StdRng::seed_from_u64(tensor_seed(seed, &format!("grow:{name}")));
-        let n = shape.iter().product();
-        let drawn: Vec<f32> = (0..n).map(|_| normal.sample(&mut rng)).collect();
-        Ok(Tensor::from_vec(drawn, shape, &Device::Cpu)?)
-    };
-    let new_rows = fresh(&fc1_weight, &weight, &[extra, inputs])?;
-    tensors.insert(fc1_weight.clone(), Tensor::cat(&[&weight, &new_rows], 0)?);
+    let new_rows = fresh_like(&weight, &[extra, inputs], seed, &fc1_weight)?;
+    tensors.insert(fc1_weight, Tensor::cat(&[&weight, &new_rows], 0)?);
     let bias = tensors[&fc1_bias].clone();
-    let new_bias = fresh(&fc1_bias, &bias, &[extra])?;
-    tensors.insert(fc1_bias, Tensor::cat(&[&bias, &new_bias], 0)?);
+    let new_bias = fresh_like(&bias, &[extra], seed, &fc1_bias)?;
+    tensors.insert(fc1_bias.clone(), Tensor::cat(&[&bias, &new_bias], 0)?);
     // Every head reads the hidden layer: zero columns for the new units.
-    let heads: Vec<String> = tensors
-        .keys()
-        .filter(|k| {
-            k.strip_prefix(prefix).is_some_and(|rest| {
-                rest.starts_with("layers.")
-                    && (rest.ends_with(".weight.weight") || rest.ends_with(".bias.weight"))
-            })
-        })
-        .cloned()
-        .collect();
-    for key in heads {
-        let head = tensors[&key].clone();
-        let rows = head.dim(0)?;
-        let zeros = Tensor::zeros((rows, extra), DType::F32, &Device::Cpu)?;
-        tensors.insert(key, Tensor::cat(&[&head, &zeros], 1)?.contiguous()?);
+    for key in head_names(tensors, prefix) {
+        if key.ends_with(".weight") {
+            let head = tensors[&key].clone();
+            let zeros = Tensor::zeros((head.dim(0)?, extra), DType::F32, &Device::Cpu)?;
+            tensors.insert(key, Tensor::cat(&[&head, &zeros], 1)?.contiguous()?);
+        }
     }
     Ok(())
+}
+
+/// The names of a hypernetwork's heads: `{prefix}layers.{l}.{weight,bias}.{weight,bias}`.
+fn head_names(tensors: &BTreeMap<String, Tensor>, prefix: &str) -> Vec<String> {
+    tensors
+        .keys()
+        .filter(|k| {
+            k.strip_prefix(prefix)
+                .is_some_and(|rest| rest.starts_with("layers."))
+        })
+        .cloned()
+        .collect()
+}
+
+/// Widening a light field's hidden layers from `old_dims` to `new_dims` (`Config::lfn_dims`).
+struct LayerGrowth {
+    old_dims: Vec<usize>,
+    new_dims: Vec<usize>,
+    seed: u64,
+}
+
+impl LayerGrowth {
+    /// A layer-`l` weight laid out as [fan_in, fan_out, X] (X: whatever generates each entry)
+    /// grown to the new fan-in (zero rows: new inputs have no effect yet) and fan-out (fresh
+    /// columns: new units compute something).
+    fn grow_weight(&self, t: &Tensor, l: usize, name: &str) -> Result<Tensor> {
+        let (old_in, old_out) = (self.old_dims[l], self.old_dims[l + 1]);
+        let (new_in, new_out) = (self.new_dims[l], self.new_dims[l + 1]);
+        let x = t.elem_count() / (old_in * old_out);
+        let mut t = t.reshape((old_in, old_out, x))?;
+        if new_out > old_out {
+            let fresh = fresh_like(&t, &[old_in, new_out - old_out, x], self.seed, name)?;
+            t = Tensor::cat(&[&t, &fresh], 1)?;
+        }
+        if new_in > old_in {
+            let zeros = Tensor::zeros((new_in - old_in, new_out, x), DType::F32, &Device::Cpu)?;
+            t = Tensor::cat(&[&t, &zeros], 0)?;
+        }
+        Ok(t.contiguous()?)
+    }
+
+    /// A layer-`l` bias laid out as [fan_out, X], grown with fresh entries.
+    fn grow_bias(&self, t: &Tensor, l: usize, name: &str) -> Result<Tensor> {
+        let (old_out, new_out) = (self.old_dims[l + 1], self.new_dims[l + 1]);
+        let x = t.elem_count() / old_out;
+        let t = t.reshape((old_out, x))?;
+        if new_out == old_out {
+            return Ok(t);
+        }
+        let fresh = fresh_like(&t, &[new_out - old_out, x], self.seed, name)?;
+        Ok(Tensor::cat(&[&t, &fresh], 0)?)
+    }
+
+    /// The heads of the hypernetwork under `prefix` (if present) generate the wider fields.
+    fn hypernet(&self, tensors: &mut BTreeMap<String, Tensor>, prefix: &str) -> Result<()> {
+        for l in 0..self.old_dims.len() - 1 {
+            let (i, o) = (self.new_dims[l], self.new_dims[l + 1]);
+            let generated_weight = format!("{prefix}layers.{l}.weight");
+            let generated_bias = format!("{prefix}layers.{l}.bias");
+            for part in ["weight", "bias"] {
+                // Head weight [rows, H] and head bias [rows]: rows index the generated tensor.
+                let key = format!("{generated_weight}.{part}");
+                let Some(t) = tensors.get(&key).cloned() else {
+                    return Ok(());
+                };
+                let grown = self.grow_weight(&t, l, &key)?;
+                let shape: Vec<usize> = if part == "weight" {
+                    vec![i * o, t.dim(1)?]
+                } else {
+                    vec![i * o]
+                };
+                tensors.insert(key, grown.reshape(shape)?);
+                let key = format!("{generated_bias}.{part}");
+                let t = tensors[&key].clone();
+                let grown = self.grow_bias(&t, l, &key)?;
+                let shape: Vec<usize> = if part == "weight" {
+                    vec![o, t.dim(1)?]
+                } else {
+                    vec![o]
+                };
+                tensors.insert(key, grown.reshape(shape)?);
+            }
+        }
+        Ok(())
+    }
+
+    /// The fixed light field under `prefix` (if present), widened.
+    fn static_field(&self, tensors: &mut BTreeMap<String, Tensor>, prefix: &str) -> Result<()> {
+        for l in 0..self.old_dims.len() - 1 {
+            let (i, o) = (self.new_dims[l], self.new_dims[l + 1]);
+            let key = format!("{prefix}layers.{l}.weight");
+            let Some(t) = tensors.get(&key).cloned() else {
+                return Ok(());
+            };
+            let grown = self.grow_weight(&t, l, &key)?.reshape((i, o))?;
+            tensors.insert(key, grown);
+            let key = format!("{prefix}layers.{l}.bias");
+            let grown = self
+                .grow_bias(&tensors[&key].clone(), l, &key)?
+                .reshape(o)?;
+            tensors.insert(key, grown);
+        }
+        Ok(())
+    }
 }
