@@ -36,6 +36,7 @@ fn tiny() -> Config {
         hypernet_rms_norm: true,
         attention_frames: false,
         fg_locality: 0.0,
+        frame_ground_height: 0.0,
         volumetric: None,
     }
 }

@@ -83,6 +83,13 @@ pub struct Config {
     /// (see `rays.rs`). Absent in older files (= 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub fg_locality: f64,
+    /// With `attention_frames`, scenes whose objects rest on the ground plane z = 0 (world +Z
+    /// up, as in clevr567): each foreground frame's origin is where the slot's centroid ray
+    /// meets the plane z = this height (about an object's centre height), instead of at the
+    /// scene centre's depth — so a slot's object sits near its frame origin in 3D, not only in
+    /// the image (see `frames.rs`). 0 = off. Absent in older files (= 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub frame_ground_height: f64,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -189,6 +196,7 @@ impl Config {
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
+            frame_ground_height: 0.0,
             volumetric: None,
         }
     }
@@ -223,6 +231,7 @@ impl Config {
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
+            frame_ground_height: 0.0,
             volumetric: None,
         }
     }
@@ -326,6 +335,9 @@ impl Config {
         }
         if self.encoder_size > 1024 || self.ray_fourier_freqs > 16 || self.lfn_hidden_layers > 16 {
             bail!("model config: a size is implausibly large");
+        }
+        if !(self.frame_ground_height.is_finite() && self.frame_ground_height >= 0.0) {
+            bail!("model config: `frame_ground_height` must be a non-negative number");
         }
         if !(self.fg_locality.is_finite() && self.fg_locality >= 0.0) {
             bail!("model config: `fg_locality` must be a non-negative number");

@@ -38,9 +38,17 @@ pub fn slot_frames(cfg: &Config, camera: &Frame, centroids: &[[f32; 2]]) -> Vec<
         .map(|&[x, y]| {
             let (x, y) = ((x as f64).clamp(0.0, 1.0), (y as f64).clamp(0.0, 1.0));
             let dir = camera.ray_at(x * w, y * h).direction;
-            // The point of the ray at `depth` along the optical axis.
+            // The point of the ray at `depth` along the optical axis, or where it meets the
+            // plane z = frame_ground_height (kept within 1/4–4 times that depth, so a ray near
+            // the horizon or the camera cannot throw the frame away).
             let along = dir.dot(forward).max(1e-6);
-            let at: DVec3 = origin + dir * (depth / along);
+            let mut axial = depth;
+            let height = cfg.frame_ground_height;
+            if height > 0.0 && dir.z < -1e-9 && origin.z > height {
+                let t = (origin.z - height) / -dir.z;
+                axial = (t * along).clamp(0.25 * depth, 4.0 * depth);
+            }
+            let at: DVec3 = origin + dir * (axial / along);
             let mut frame = camera.camera_to_world;
             frame.w_axis = at.extend(1.0);
             frame
@@ -82,5 +90,41 @@ mod tests {
         // Rotation is the camera's: frames are rigid.
         let rot = |m: &DMat4| glam::DMat3::from_mat4(*m);
         assert!(rot(&frames[1]).abs_diff_eq(rot(&cam.camera_to_world), 1e-12));
+    }
+
+    #[test]
+    fn ground_frames_sit_where_the_centroid_ray_meets_the_plane() {
+        let mut cfg = Config::small();
+        cfg.attention_frames = true;
+        cfg.frame_ground_height = 0.5;
+        let cam = camera();
+        let object = DVec3::new(2.0, 1.5, 0.5);
+        let (u, v) = cam.project(object).unwrap();
+        let frames = slot_frames(&cfg, &cam, &[[(u / 64.0) as f32, (v / 64.0) as f32]]);
+        assert!((frames[0].w_axis.truncate() - object).length() < 1e-6);
+        let rot = |m: &DMat4| glam::DMat3::from_mat4(*m);
+        assert!(rot(&frames[0]).abs_diff_eq(rot(&cam.camera_to_world), 1e-12));
+        // A ray above the horizon keeps the scene-depth frame; one grazing the plane far away
+        // stays within 4× the scene depth.
+        let low = Frame {
+            camera_to_world: look_at(DVec3::new(0.0, -12.0, 1.5), DVec3::ZERO, DVec3::Z).unwrap(),
+            ..camera()
+        };
+        let top = [0.5f32, 0.0];
+        let grazing = [0.5f32, 0.38]; // 0.86° below the horizon: meets the plane ~66 away
+        let plain = slot_frames(
+            &Config {
+                frame_ground_height: 0.0,
+                ..cfg.clone()
+            },
+            &low,
+            &[top],
+        );
+        let ground = slot_frames(&cfg, &low, &[top, grazing]);
+        assert_eq!(ground[0], plain[0]);
+        let forward = -low.camera_to_world.z_axis.truncate().normalize();
+        let axial = (ground[1].w_axis.truncate() - low.origin()).dot(forward);
+        let depth = low.origin().length();
+        assert!((axial - 4.0 * depth).abs() < 1e-6, "{axial} vs {depth}");
     }
 }
