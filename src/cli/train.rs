@@ -131,6 +131,14 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0, value_name = "PX")]
     pub mask_margin: usize,
 
+    /// Mask losses also ignore background pixels darker than their view's floor by more than D
+    /// (sRGB brightness in [0, 1]; the floor level is the median brightness of the view's
+    /// background pixels): the hard shadows objects cast, which, like --mask-margin's band, are
+    /// left to the colour loss and so to the objects' slots. For scenes on a uniform floor such
+    /// as clevr567 (0 = off).
+    #[arg(long, default_value_t = 0.0, value_name = "D")]
+    pub mask_shadow_depth: f64,
+
     /// Render the background from a zero latent, so it cannot depend on the image (the paper's
     /// choice for CLEVR). A fresh model's setting, stored in its config (so encode and render
     /// do the same); with --init or --resume the model's own setting holds.
@@ -272,6 +280,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         attention_mask_weight: args.attention_mask_weight,
         object_fraction: args.object_fraction,
         mask_margin: args.mask_margin,
+        mask_shadow_depth: args.mask_shadow_depth,
         zero_background: args.zero_background,
         config_overrides: args.config_overrides.clone(),
         seed: args.seed,

@@ -19,6 +19,52 @@ pub struct RaySampling {
     pub object_fraction: f64,
     /// Background pixels within this many pixels of an object are marked `near_object`.
     pub mask_margin: usize,
+    /// With > 0, background pixels darker than their view's floor by more than this (sRGB
+    /// brightness in [0, 1]) are marked `near_object` too: the shadows objects cast.
+    pub shadow_depth: f64,
+}
+
+/// The brightness below which a background pixel of this view counts as shadow: the median
+/// brightness (mean of R, G, B) of its background pixels — mostly lit floor — minus `depth`.
+/// None when `depth` is 0 or the view has no background.
+pub fn shadow_threshold(mask: &[u8], image: &[f32], depth: f64) -> Option<f32> {
+    if depth <= 0.0 {
+        return None;
+    }
+    let mut background: Vec<f32> = (0..mask.len())
+        .filter(|&p| mask[p] == 0)
+        .map(|p| brightness(image, p))
+        .collect();
+    if background.is_empty() {
+        return None;
+    }
+    let middle = background.len() / 2;
+    let (_, median, _) = background.select_nth_unstable_by(middle, f32::total_cmp);
+    Some(*median - depth as f32)
+}
+
+fn brightness(image: &[f32], p: usize) -> f32 {
+    (image[3 * p] + image[3 * p + 1] + image[3 * p + 2]) / 3.0
+}
+
+/// Whether the mask losses leave pixel (x, y) to the colour loss: a background pixel within
+/// `margin` pixels of an object (see [`near_object`]) or, with a `shadow_below` threshold
+/// ([`shadow_threshold`]), darker than it.
+#[allow(clippy::too_many_arguments)]
+pub fn left_to_colour(
+    mask: &[u8],
+    image: &[f32],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    margin: usize,
+    shadow_below: Option<f32>,
+) -> bool {
+    let p = y * w + x;
+    mask[p] == 0
+        && (shadow_below.is_some_and(|t| brightness(image, p) < t)
+            || near_object(mask, w, h, x, y, margin))
 }
 
 /// Whether pixel (x, y) of a w×h id mask is background with an object pixel within `margin`
@@ -49,7 +95,8 @@ pub struct SceneSample {
     /// Ground-truth object id per ray (0 = background; all 0 without masks).
     pub ids: Vec<u8>,
     /// Per ray: a background pixel within `RaySampling::mask_margin` pixels of an object (the
-    /// band where objects cast shadows; mask losses leave it to the colour loss).
+    /// band where objects cast shadows) or in shadow (`RaySampling::shadow_depth`); mask losses
+    /// leave it to the colour loss.
     pub near_object: Vec<bool>,
     pub has_masks: bool,
 }
@@ -103,6 +150,10 @@ pub fn sample_scene(
         } else {
             (sampling.object_fraction * sampling.rays_per_view as f64).round() as usize
         };
+        let shadow_below = view
+            .mask
+            .as_ref()
+            .and_then(|m| shadow_threshold(m, &view.image.data, sampling.shadow_depth));
         for r in 0..sampling.rays_per_view {
             let p = if r < n_object {
                 object_pixels[rng.random_range(0..object_pixels.len())]
@@ -118,7 +169,17 @@ pub fn sample_scene(
                 .extend_from_slice(&view.image.data[3 * p..3 * p + 3]);
             sample.ids.push(view.mask.as_ref().map_or(0, |m| m[p]));
             sample.near_object.push(view.mask.as_ref().is_some_and(|m| {
-                near_object(m, w, h, i as usize, j as usize, sampling.mask_margin)
+                let (x, y) = (i as usize, j as usize);
+                left_to_colour(
+                    m,
+                    &view.image.data,
+                    w,
+                    h,
+                    x,
+                    y,
+                    sampling.mask_margin,
+                    shadow_below,
+                )
             }));
         }
     }
@@ -138,5 +199,28 @@ mod tests {
         let wide: Vec<bool> = (0..5).map(|x| near_object(&mask, 5, 1, x, 0, 2)).collect();
         assert_eq!(wide, vec![true, true, false, true, true]);
         assert!((0..5).all(|x| !near_object(&mask, 5, 1, x, 0, 0)));
+    }
+
+    #[test]
+    fn shadows_are_background_pixels_darker_than_the_floor() {
+        // 6×1: floor 0.7, an object (id 2, dark), a shadow 0.45, floor, a slightly dark floor 0.66.
+        let mask = [0u8, 0, 2, 0, 0, 0];
+        let grey = |v: f32| [v, v, v];
+        let image: Vec<f32> = [0.7, 0.7, 0.1, 0.45, 0.7, 0.66]
+            .into_iter()
+            .flat_map(grey)
+            .collect();
+        assert_eq!(shadow_threshold(&mask, &image, 0.0), None);
+        let below = shadow_threshold(&mask, &image, 0.1);
+        assert!((below.unwrap() - 0.6).abs() < 1e-6);
+        let left: Vec<bool> = (0..6)
+            .map(|x| left_to_colour(&mask, &image, 6, 1, x, 0, 0, below))
+            .collect();
+        assert_eq!(left, vec![false, false, false, true, false, false]);
+        // With a margin as well, the band around the object joins.
+        let left: Vec<bool> = (0..6)
+            .map(|x| left_to_colour(&mask, &image, 6, 1, x, 0, 1, below))
+            .collect();
+        assert_eq!(left, vec![false, true, false, true, false, false]);
     }
 }

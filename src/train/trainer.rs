@@ -5,7 +5,7 @@
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
 use super::adam::{Adam, AdamConfig};
-use super::batch::{near_object, sample_scene, RaySampling, SceneSample};
+use super::batch::{left_to_colour, sample_scene, shadow_threshold, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
@@ -81,6 +81,10 @@ pub struct TrainOptions {
     /// the image cannot draw it, so only the object's slot can.
     #[serde(default)]
     pub mask_margin: usize,
+    /// Mask losses also ignore background pixels darker than their view's floor by more than
+    /// this (0 = off; see `batch::shadow_threshold`).
+    #[serde(default)]
+    pub mask_shadow_depth: f64,
     /// Fresh models only: render the background from a zero latent, so it cannot depend on the
     /// image (the paper's choice for CLEVR); stored in the model's config.
     pub zero_background: bool,
@@ -133,6 +137,9 @@ impl TrainOptions {
         }
         if !(0.0..=1.0).contains(&self.object_fraction) {
             bail!("object fraction must be in [0, 1]");
+        }
+        if !(0.0..=1.0).contains(&self.mask_shadow_depth) {
+            bail!("--mask-shadow-depth must be in [0, 1]");
         }
         Ok(())
     }
@@ -279,6 +286,7 @@ impl Trainer {
             rays_per_view: opts.rays_per_view,
             object_fraction: opts.object_fraction,
             mask_margin: opts.mask_margin,
+            shadow_depth: opts.mask_shadow_depth,
         };
         let samples: Vec<SceneSample> = (0..opts.batch_scenes)
             .map(|_| {
@@ -359,8 +367,15 @@ impl Trainer {
                     .to_vec1::<f32>()?;
                 let (mut index, mut valid) = (Vec::new(), Vec::new());
                 for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
+                    let shadow_below =
+                        shadow_threshold(mask, &sample.input, opts.mask_shadow_depth);
+                    let exclusion = Exclusion {
+                        image: &sample.input,
+                        margin: opts.mask_margin,
+                        shadow_below,
+                    };
                     let (ids, near) =
-                        token_ids(mask, sample.input_w, sample.input_h, g, opts.mask_margin);
+                        token_ids(mask, sample.input_w, sample.input_h, g, &exclusion);
                     let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
                     let (i, v) = match_objects(&ids, scene, s, Some(&near));
                     index.extend(i);
@@ -589,13 +604,37 @@ fn match_objects(
 /// Object ids of a token grid (g×g, row-major) from a w×h mask: each token takes the id of
 /// the pixel under its centre; and whether that pixel is background within `margin` pixels
 /// of an object.
-fn token_ids(mask: &[u8], w: usize, h: usize, g: usize, margin: usize) -> (Vec<u8>, Vec<bool>) {
+/// Which background pixels of an input view the mask losses leave to the colour loss.
+struct Exclusion<'a> {
+    /// The view's image (sRGB, h×w×3).
+    image: &'a [f32],
+    margin: usize,
+    shadow_below: Option<f32>,
+}
+
+fn token_ids(
+    mask: &[u8],
+    w: usize,
+    h: usize,
+    g: usize,
+    exclusion: &Exclusion,
+) -> (Vec<u8>, Vec<bool>) {
     (0..g * g)
         .map(|t| {
             let (tx, ty) = (t % g, t / g);
             let x = ((((tx as f64 + 0.5) / g as f64) * w as f64) as usize).min(w - 1);
             let y = ((((ty as f64 + 0.5) / g as f64) * h as f64) as usize).min(h - 1);
-            (mask[y * w + x], near_object(mask, w, h, x, y, margin))
+            let left = left_to_colour(
+                mask,
+                exclusion.image,
+                w,
+                h,
+                x,
+                y,
+                exclusion.margin,
+                exclusion.shadow_below,
+            );
+            (mask[y * w + x], left)
         })
         .unzip()
 }
@@ -746,15 +785,21 @@ mod tests {
         for (x, y) in [(2, 2), (3, 2), (2, 3), (3, 3)] {
             mask[y * 4 + x] = 3;
         }
-        assert_eq!(token_ids(&mask, 4, 4, 2, 0).0, vec![0, 0, 0, 3]);
+        let image = vec![0.5f32; 48];
+        let margin = |margin| Exclusion {
+            image: &image,
+            margin,
+            shadow_below: None,
+        };
+        assert_eq!(token_ids(&mask, 4, 4, 2, &margin(0)).0, vec![0, 0, 0, 3]);
         // Token centres are pixels (1, 1), (3, 1), (1, 3) and (3, 3): the three background
         // ones touch the object diagonally or sideways, so with a 1-pixel margin they are near
         // it; with none, nothing is.
         assert_eq!(
-            token_ids(&mask, 4, 4, 2, 1).1,
+            token_ids(&mask, 4, 4, 2, &margin(1)).1,
             vec![true, true, true, false]
         );
-        assert_eq!(token_ids(&mask, 4, 4, 2, 0).1, vec![false; 4]);
+        assert_eq!(token_ids(&mask, 4, 4, 2, &margin(0)).1, vec![false; 4]);
     }
 
     #[test]
