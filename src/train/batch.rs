@@ -47,24 +47,30 @@ fn brightness(image: &[f32], p: usize) -> f32 {
     (image[3 * p] + image[3 * p + 1] + image[3 * p + 2]) / 3.0
 }
 
-/// Whether the mask losses leave pixel (x, y) to the colour loss: a background pixel within
-/// `margin` pixels of an object (see [`near_object`]) or, with a `shadow_below` threshold
-/// ([`shadow_threshold`]), darker than it.
-#[allow(clippy::too_many_arguments)]
-pub fn left_to_colour(
-    mask: &[u8],
-    image: &[f32],
-    w: usize,
-    h: usize,
-    x: usize,
-    y: usize,
-    margin: usize,
-    shadow_below: Option<f32>,
-) -> bool {
-    let p = y * w + x;
-    mask[p] == 0
-        && (shadow_below.is_some_and(|t| brightness(image, p) < t)
-            || near_object(mask, w, h, x, y, margin))
+/// Which pixels of one view the mask losses leave to the colour loss: background pixels within
+/// `margin` pixels of an object (see [`near_object`]) and, with a `shadow_below` threshold
+/// ([`shadow_threshold`]), background pixels darker than it.
+pub struct MaskExclusion<'a> {
+    /// Object ids, w×h (0 = background).
+    pub mask: &'a [u8],
+    /// The view's image, sRGB, h×w×3.
+    pub image: &'a [f32],
+    pub w: usize,
+    pub h: usize,
+    pub margin: usize,
+    pub shadow_below: Option<f32>,
+}
+
+impl MaskExclusion<'_> {
+    /// Whether the mask losses leave pixel (x, y) to the colour loss.
+    pub fn leaves(&self, x: usize, y: usize) -> bool {
+        let p = y * self.w + x;
+        self.mask[p] == 0
+            && (self
+                .shadow_below
+                .is_some_and(|t| brightness(self.image, p) < t)
+                || near_object(self.mask, self.w, self.h, x, y, self.margin))
+    }
 }
 
 /// Whether pixel (x, y) of a w×h id mask is background with an object pixel within `margin`
@@ -98,6 +104,8 @@ pub struct SceneSample {
     /// band where objects cast shadows) or in shadow (`RaySampling::shadow_depth`); mask losses
     /// leave it to the colour loss.
     pub near_object: Vec<bool>,
+    /// The input view's shadow threshold (`RaySampling::shadow_depth`; None when off).
+    pub input_shadow_below: Option<f32>,
     pub has_masks: bool,
 }
 
@@ -136,6 +144,7 @@ pub fn sample_scene(
         targets: Vec::with_capacity(3 * total),
         ids: Vec::with_capacity(total),
         near_object: Vec::with_capacity(total),
+        input_shadow_below: None,
         has_masks,
     };
     for &v in &views {
@@ -150,10 +159,17 @@ pub fn sample_scene(
         } else {
             (sampling.object_fraction * sampling.rays_per_view as f64).round() as usize
         };
-        let shadow_below = view
-            .mask
-            .as_ref()
-            .and_then(|m| shadow_threshold(m, &view.image.data, sampling.shadow_depth));
+        let exclusion = view.mask.as_ref().map(|mask| MaskExclusion {
+            mask,
+            image: &view.image.data,
+            w,
+            h,
+            margin: sampling.mask_margin,
+            shadow_below: shadow_threshold(mask, &view.image.data, sampling.shadow_depth),
+        });
+        if v == input_index {
+            sample.input_shadow_below = exclusion.as_ref().and_then(|e| e.shadow_below);
+        }
         for r in 0..sampling.rays_per_view {
             let p = if r < n_object {
                 object_pixels[rng.random_range(0..object_pixels.len())]
@@ -168,19 +184,11 @@ pub fn sample_scene(
                 .targets
                 .extend_from_slice(&view.image.data[3 * p..3 * p + 3]);
             sample.ids.push(view.mask.as_ref().map_or(0, |m| m[p]));
-            sample.near_object.push(view.mask.as_ref().is_some_and(|m| {
-                let (x, y) = (i as usize, j as usize);
-                left_to_colour(
-                    m,
-                    &view.image.data,
-                    w,
-                    h,
-                    x,
-                    y,
-                    sampling.mask_margin,
-                    shadow_below,
-                )
-            }));
+            sample.near_object.push(
+                exclusion
+                    .as_ref()
+                    .is_some_and(|e| e.leaves(i as usize, j as usize)),
+            );
         }
     }
     Ok(sample)
@@ -213,14 +221,18 @@ mod tests {
         assert_eq!(shadow_threshold(&mask, &image, 0.0), None);
         let below = shadow_threshold(&mask, &image, 0.1);
         assert!((below.unwrap() - 0.6).abs() < 1e-6);
-        let left: Vec<bool> = (0..6)
-            .map(|x| left_to_colour(&mask, &image, 6, 1, x, 0, 0, below))
-            .collect();
+        let exclusion = |margin| MaskExclusion {
+            mask: &mask,
+            image: &image,
+            w: 6,
+            h: 1,
+            margin,
+            shadow_below: below,
+        };
+        let left: Vec<bool> = (0..6).map(|x| exclusion(0).leaves(x, 0)).collect();
         assert_eq!(left, vec![false, false, false, true, false, false]);
         // With a margin as well, the band around the object joins.
-        let left: Vec<bool> = (0..6)
-            .map(|x| left_to_colour(&mask, &image, 6, 1, x, 0, 1, below))
-            .collect();
+        let left: Vec<bool> = (0..6).map(|x| exclusion(1).leaves(x, 0)).collect();
         assert_eq!(left, vec![false, true, false, true, false, false]);
     }
 }

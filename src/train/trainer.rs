@@ -5,7 +5,7 @@
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
 use super::adam::{Adam, AdamConfig};
-use super::batch::{left_to_colour, sample_scene, shadow_threshold, RaySampling, SceneSample};
+use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
@@ -367,15 +367,15 @@ impl Trainer {
                     .to_vec1::<f32>()?;
                 let (mut index, mut valid) = (Vec::new(), Vec::new());
                 for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
-                    let shadow_below =
-                        shadow_threshold(mask, &sample.input, opts.mask_shadow_depth);
-                    let exclusion = Exclusion {
+                    let exclusion = MaskExclusion {
+                        mask,
                         image: &sample.input,
+                        w: sample.input_w,
+                        h: sample.input_h,
                         margin: opts.mask_margin,
-                        shadow_below,
+                        shadow_below: sample.input_shadow_below,
                     };
-                    let (ids, near) =
-                        token_ids(mask, sample.input_w, sample.input_h, g, &exclusion);
+                    let (ids, near) = token_ids(&exclusion, g);
                     let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
                     let (i, v) = match_objects(&ids, scene, s, Some(&near));
                     index.extend(i);
@@ -601,40 +601,16 @@ fn match_objects(
         .unzip()
 }
 
-/// Object ids of a token grid (g×g, row-major) from a w×h mask: each token takes the id of
-/// the pixel under its centre; and whether that pixel is background within `margin` pixels
-/// of an object.
-/// Which background pixels of an input view the mask losses leave to the colour loss.
-struct Exclusion<'a> {
-    /// The view's image (sRGB, h×w×3).
-    image: &'a [f32],
-    margin: usize,
-    shadow_below: Option<f32>,
-}
-
-fn token_ids(
-    mask: &[u8],
-    w: usize,
-    h: usize,
-    g: usize,
-    exclusion: &Exclusion,
-) -> (Vec<u8>, Vec<bool>) {
+/// Object ids of a token grid (g×g, row-major) from a view's mask: each token takes the id of
+/// the pixel under its centre; and whether the mask losses leave that pixel to the colour loss.
+fn token_ids(exclusion: &MaskExclusion, g: usize) -> (Vec<u8>, Vec<bool>) {
+    let (w, h) = (exclusion.w, exclusion.h);
     (0..g * g)
         .map(|t| {
             let (tx, ty) = (t % g, t / g);
             let x = ((((tx as f64 + 0.5) / g as f64) * w as f64) as usize).min(w - 1);
             let y = ((((ty as f64 + 0.5) / g as f64) * h as f64) as usize).min(h - 1);
-            let left = left_to_colour(
-                mask,
-                exclusion.image,
-                w,
-                h,
-                x,
-                y,
-                exclusion.margin,
-                exclusion.shadow_below,
-            );
-            (mask[y * w + x], left)
+            (exclusion.mask[y * w + x], exclusion.leaves(x, y))
         })
         .unzip()
 }
@@ -786,20 +762,20 @@ mod tests {
             mask[y * 4 + x] = 3;
         }
         let image = vec![0.5f32; 48];
-        let margin = |margin| Exclusion {
+        let margin = |margin| MaskExclusion {
+            mask: &mask,
             image: &image,
+            w: 4,
+            h: 4,
             margin,
             shadow_below: None,
         };
-        assert_eq!(token_ids(&mask, 4, 4, 2, &margin(0)).0, vec![0, 0, 0, 3]);
+        assert_eq!(token_ids(&margin(0), 2).0, vec![0, 0, 0, 3]);
         // Token centres are pixels (1, 1), (3, 1), (1, 3) and (3, 3): the three background
         // ones touch the object diagonally or sideways, so with a 1-pixel margin they are near
         // it; with none, nothing is.
-        assert_eq!(
-            token_ids(&mask, 4, 4, 2, &margin(1)).1,
-            vec![true, true, true, false]
-        );
-        assert_eq!(token_ids(&mask, 4, 4, 2, &margin(0)).1, vec![false; 4]);
+        assert_eq!(token_ids(&margin(1), 2).1, vec![true, true, true, false]);
+        assert_eq!(token_ids(&margin(0), 2).1, vec![false; 4]);
     }
 
     #[test]
