@@ -144,6 +144,13 @@ fn head_names(tensors: &BTreeMap<String, Tensor>, prefix: &str) -> Vec<String> {
         .collect()
 }
 
+/// `t`'s shape with `rows` in place of its first dimension.
+fn with_rows(t: &Tensor, rows: usize) -> Vec<usize> {
+    let mut shape = t.dims().to_vec();
+    shape[0] = rows;
+    shape
+}
+
 /// Widening a light field's hidden layers from `old_dims` to `new_dims` (`Config::lfn_dims`).
 struct LayerGrowth {
     old_dims: Vec<usize>,
@@ -196,21 +203,11 @@ impl LayerGrowth {
                     return Ok(());
                 };
                 let grown = self.grow_weight(&t, l, &key)?;
-                let shape: Vec<usize> = if part == "weight" {
-                    vec![i * o, t.dim(1)?]
-                } else {
-                    vec![i * o]
-                };
-                tensors.insert(key, grown.reshape(shape)?);
+                tensors.insert(key, grown.reshape(with_rows(&t, i * o))?);
                 let key = format!("{generated_bias}.{part}");
                 let t = tensors[&key].clone();
                 let grown = self.grow_bias(&t, l, &key)?;
-                let shape: Vec<usize> = if part == "weight" {
-                    vec![o, t.dim(1)?]
-                } else {
-                    vec![o]
-                };
-                tensors.insert(key, grown.reshape(shape)?);
+                tensors.insert(key, grown.reshape(with_rows(&t, o))?);
             }
         }
         Ok(())

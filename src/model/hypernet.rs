@@ -43,6 +43,17 @@ pub struct HyperNet {
     rms_norm: bool,
 }
 
+/// Kaiming std of light-field layer `l` of widths `dims`: gain/√fan_in, gain √2 before a ReLU
+/// and 1 on the last layer.
+fn kaiming_std(dims: &[usize], l: usize) -> f64 {
+    let gain = if l + 2 == dims.len() {
+        1.0
+    } else {
+        2f64.sqrt()
+    };
+    gain / (dims[l] as f64).sqrt()
+}
+
 fn head(inp: usize, out: usize, a: f64, c: f64, vb: VarBuilder) -> Result<Linear> {
     let weight = vb.get_with_hints((out, inp), "weight", Init::Uniform { lo: -a, up: a })?;
     let bias = vb.get_with_hints(out, "bias", Init::Uniform { lo: -c, up: c })?;
@@ -57,9 +68,7 @@ impl HyperNet {
         let mut layers = Vec::new();
         for l in 0..dims.len() - 1 {
             let (fan_in, fan_out) = (dims[l], dims[l + 1]);
-            let last = l + 2 == dims.len();
-            let gain = if last { 1.0 } else { 2f64.sqrt() };
-            let sigma = gain / (fan_in as f64).sqrt();
+            let sigma = kaiming_std(&dims, l);
             // Var(A·h) = H·a²/3·E[h²] with E[h²] ≈ 1/6 → a = √(4.5/H)·σ gives ¼σ².
             let a = (4.5 / h as f64).sqrt() * sigma;
             // Var(U(−c, c)) = c²/3 = ¾σ² → c = 1.5σ.
@@ -125,13 +134,8 @@ impl StaticField {
         let mut layers = Vec::new();
         for l in 0..dims.len() - 1 {
             let (fan_in, fan_out) = (dims[l], dims[l + 1]);
-            let gain = if l + 2 == dims.len() {
-                1.0
-            } else {
-                2f64.sqrt()
-            };
             // Uniform with the Kaiming variance σ²: bound √3·σ.
-            let bound = 3f64.sqrt() * gain / (fan_in as f64).sqrt();
+            let bound = 3f64.sqrt() * kaiming_std(&dims, l);
             let vb_l = vb.pp(format!("layers.{l}"));
             let weight = vb_l.get_with_hints(
                 (fan_in, fan_out),
