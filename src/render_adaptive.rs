@@ -3,7 +3,8 @@
 //!
 //! 1. Render the compositor weights of all slots at reduced resolution: one ray through the
 //!    centre of every `factor`×`factor` block of pixels (`factor` = [`COARSE_FACTOR`]).
-//! 2. For every full-resolution pixel, take each slot's largest coarse weight over the pixel's
+//! 2. For every full-resolution pixel, take each slot's largest coarse weight (or shadow
+//!    density σ, for a model whose slots cast shadows: they darken pixels they do not win) over the pixel's
 //!    support: the 2×2 coarse samples a bilinear upsampling would blend for it (widened by
 //!    [`DILATE_BLOCKS`] − 1 samples each way), so a slot visible at either side of a pixel's
 //!    cell is still evaluated there.
@@ -88,7 +89,8 @@ pub fn active_mask(
                 let mut best = 0f32;
                 for by in y0..=y1 {
                     for bx in x0..=x1 {
-                        best = best.max(coarse.weights[(by * cw + bx) * s + k]);
+                        let at = (by * cw + bx) * s + k;
+                        best = best.max(coarse.weights[at]).max(coarse.shadow[at]);
                     }
                 }
                 let on = best > eps;

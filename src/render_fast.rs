@@ -156,6 +156,8 @@ struct LightFieldHost {
     head_mid: Vec<(HostDense, HostDense)>,
     /// Output layer, block-diagonal 2H → 4 (colour 3, ordering 1); None without hidden layers.
     head_out: Option<HostDense>,
+    /// The shadow head, with `Config::shadow_head`.
+    shadow: Option<ShadowHost>,
     head_hidden: usize,
     /// Compositor V, layers in order (the last without a bias: zeros).
     comp: Vec<HostDense>,
@@ -165,6 +167,14 @@ struct LightFieldHost {
     in_dim: usize,
     /// The model's config with Fourier features off, for the shifts of `RayBatch`.
     shift_cfg: Config,
+}
+
+/// `heads.shadow` on the host: σ = gate · sigmoid(w·f + b), the gate's gain applied.
+struct ShadowHost {
+    /// w, one per feature (the [F, 1] weight of a `HostDense`).
+    weight: Vec<f32>,
+    bias: f32,
+    gate: f32,
 }
 
 impl LightFieldHost {
@@ -244,11 +254,25 @@ impl LightFieldHost {
             .exp()?
             .flatten_all()?
             .to_vec1::<f32>()?[0];
+        let shadow = if cfg.shadow_head {
+            let logit = linear(colf, "heads.shadow", true)?;
+            let gate = param(colf, "heads.shadow.gate")?
+                .flatten_all()?
+                .to_vec1::<f32>()?;
+            Some(ShadowHost {
+                weight: logit.w,
+                bias: logit.b[0],
+                gate: gate[0] * crate::model::heads::SHADOW_GATE_GAIN as f32,
+            })
+        } else {
+            None
+        };
         Ok(LightFieldHost {
             fields,
             head_first,
             head_mid,
             head_out,
+            shadow,
             head_hidden: cfg.head_hidden,
             comp,
             gap_slope: slope,
@@ -388,6 +412,7 @@ impl FastRenderer {
             rgb: vec![0.0; 3 * r],
             weights: vec![0.0; s * r],
             ordering: vec![0.0; s * r],
+            shadow: vec![0.0; s * r],
             fields: s,
         };
         match &self.kind {
@@ -403,7 +428,7 @@ impl FastRenderer {
                     |scratch, start, rays, out| {
                         let n = rays.0.len();
                         let active = active.map(|a| &a[start * s..(start + n) * s]);
-                        self.lf_chunk(lf, scratch, rays.0, rays.1, active, out.0, out.1, out.2)
+                        self.lf_chunk(lf, scratch, rays.0, rays.1, active, out)
                     },
                 )?;
             }
@@ -417,8 +442,16 @@ impl FastRenderer {
                 }
                 let chunk = (VOL_POINTS / n_samples).max(1);
                 par_ray_chunks(&mut out, chunk, origins, dirs, |scratch, _, rays, out| {
-                    let (rgb, w, ord) = out;
-                    self.vol_chunk(vol, scratch, rays.0, rays.1, n_samples, rgb, w, ord);
+                    self.vol_chunk(
+                        vol,
+                        scratch,
+                        rays.0,
+                        rays.1,
+                        n_samples,
+                        out.rgb,
+                        out.weights,
+                        out.ordering,
+                    );
                     Ok(())
                 })?;
             }
@@ -427,7 +460,6 @@ impl FastRenderer {
     }
 
     /// One chunk of light-field rays; see the module documentation.
-    #[allow(clippy::too_many_arguments)]
     fn lf_chunk(
         &self,
         lf: &LightFieldHost,
@@ -435,10 +467,14 @@ impl FastRenderer {
         origins: &[DVec3],
         dirs: &[DVec3],
         active: Option<&[bool]>,
-        rgb: &mut [f32],
-        weights: &mut [f32],
-        ordering: &mut [f32],
+        out: ChunkOut,
     ) -> Result<()> {
+        let ChunkOut {
+            rgb,
+            weights,
+            ordering,
+            shadow,
+        } = out;
         let s = self.fields();
         let n = origins.len();
         let in_dim = lf.in_dim;
@@ -499,6 +535,15 @@ impl FastRenderer {
                 layer.run(&sc.a, x_w, m, &mut sc.b, layer.output, relu);
                 std::mem::swap(&mut sc.a, &mut sc.b);
                 x_w = layer.output;
+            }
+            // Shadow density of a foreground slot (features in a), as `ShadowHead`.
+            if let (Some(sh), true) = (&lf.shadow, si > 0) {
+                for (j, &ri) in sc.rows.iter().enumerate() {
+                    let f = &sc.a[j * x_w..(j + 1) * x_w];
+                    let logit: f32 =
+                        sh.bias + f.iter().zip(&sh.weight).map(|(a, b)| a * b).sum::<f32>();
+                    shadow[ri * s + si] = sh.gate * sigmoid(logit);
+                }
             }
             // Heads (features in a).
             lf.head_first
@@ -571,6 +616,16 @@ impl FastRenderer {
             // Put the buffers back (both are scratch of the same size).
             sc.c = y;
             sc.b = x;
+        }
+        // The shadows the evaluated foreground slots cast darken the background's colour.
+        if lf.shadow.is_some() {
+            for ri in 0..n {
+                let cast: f32 = shadow[ri * s + 1..(ri + 1) * s].iter().sum();
+                let lit = (-cast).exp();
+                for c in 0..3 {
+                    sc.colors[ri * s * 3 + c] *= lit;
+                }
+            }
         }
         // Softmax over the active fields, colour, outputs.
         for ri in 0..n {
@@ -877,8 +932,13 @@ impl VolumetricHost {
 
 /// One chunk's rays (origins, directions).
 type ChunkRays<'a> = (&'a [DVec3], &'a [DVec3]);
-/// One chunk's outputs (rgb, weights, ordering).
-type ChunkOut<'a> = (&'a mut [f32], &'a mut [f32], &'a mut [f32]);
+/// One chunk's outputs: the `RayOutput` rows of its rays.
+struct ChunkOut<'a> {
+    rgb: &'a mut [f32],
+    weights: &'a mut [f32],
+    ordering: &'a mut [f32],
+    shadow: &'a mut [f32],
+}
 
 /// Runs `task(scratch, first_ray, rays, outputs)` on the chunks of `chunk` rays of `out` (and the
 /// matching `origins` and `dirs`), in parallel, each with its own scratch buffers; the first
@@ -898,10 +958,20 @@ where
         .par_chunks_mut(3 * chunk)
         .zip(out.weights.par_chunks_mut(s * chunk))
         .zip(out.ordering.par_chunks_mut(s * chunk))
+        .zip(out.shadow.par_chunks_mut(s * chunk))
         .enumerate()
-        .try_for_each_init(Scratch::default, |scratch, (ci, ((rgb, w), ord))| {
-            let (start, n) = (ci * chunk, rgb.len() / 3);
-            let rays = (&origins[start..start + n], &dirs[start..start + n]);
-            task(scratch, start, rays, (rgb, w, ord))
-        })
+        .try_for_each_init(
+            Scratch::default,
+            |scratch, (ci, (((rgb, weights), ordering), shadow))| {
+                let (start, n) = (ci * chunk, rgb.len() / 3);
+                let rays = (&origins[start..start + n], &dirs[start..start + n]);
+                let out = ChunkOut {
+                    rgb,
+                    weights,
+                    ordering,
+                    shadow,
+                };
+                task(scratch, start, rays, out)
+            },
+        )
 }

@@ -54,7 +54,11 @@ fn max_diff(a: &[f32], b: &[f32]) -> f32 {
 }
 
 fn compare(cfg: &Config, k: usize, rays: usize, tol_order: f32) {
-    let model = Colf::init(cfg, 3).unwrap();
+    compare_model(&Colf::init(cfg, 3).unwrap(), k, rays, tol_order);
+}
+
+fn compare_model(model: &Colf, k: usize, rays: usize, tol_order: f32) {
+    let cfg = model.config();
     let d = cfg.slot_dim;
     let latents: Vec<Vec<f32>> = (0..k).map(|i| noise(d, 10 + i as u64)).collect();
     let bg = noise(d, 7);
@@ -63,7 +67,7 @@ fn compare(cfg: &Config, k: usize, rays: usize, tol_order: f32) {
     let slow = model
         .render_rays(&prepared, &frames, &origins, &dirs)
         .unwrap();
-    let fast_r = FastRenderer::new(&model, &prepared, &frames).unwrap();
+    let fast_r = FastRenderer::new(model, &prepared, &frames).unwrap();
     let fast = fast_r.render(&origins, &dirs, None, None).unwrap();
     assert_eq!(fast.fields, 1 + k);
     let drgb = max_diff(&slow.rgb, &fast.rgb);
@@ -73,7 +77,11 @@ fn compare(cfg: &Config, k: usize, rays: usize, tol_order: f32) {
         "{} K={k}: max |Δ| rgb {drgb:.2e}, weights {dw:.2e}, ordering {dord:.2e}",
         cfg.preset
     );
-    assert!(drgb < 1e-4 && dw < 1e-4, "rgb {drgb}, weights {dw}");
+    let dsh = max_diff(&slow.shadow, &fast.shadow);
+    assert!(
+        drgb < 1e-4 && dw < 1e-4 && dsh < 1e-4,
+        "rgb {drgb}, weights {dw}, shadow {dsh}"
+    );
     // Ordering values are world distances (~10 units): 1e-4 relative.
     assert!(dord < tol_order, "ordering {dord}");
     // Deterministic: a second render gives the same bits.
@@ -115,6 +123,34 @@ fn light_field_with_a_locality_bound_matches_candle() {
         .with_overrides(&["fg_locality=2.0".into(), "ray_fourier_freqs=6".into()])
         .unwrap();
     compare(&cfg, 6, 400, 2e-3);
+}
+
+#[test]
+fn light_field_with_shadows_matches_candle() {
+    let cfg = Config::small()
+        .with_overrides(&["shadow_head=true".into()])
+        .unwrap();
+    let model = Colf::init(&cfg, 3)
+        .unwrap()
+        .with_tensor(
+            "heads.shadow.gate",
+            candle_core::Tensor::new(&[0.05f32], &candle_core::Device::Cpu).unwrap(),
+        )
+        .unwrap();
+    compare_model(&model, 4, 500, 2e-3);
+    // The shadows are there: each foreground slot's σ on every ray, none for the background.
+    let prepared = model
+        .prepare(&[noise(64, 1), noise(64, 2)], &noise(64, 3))
+        .unwrap();
+    let (frames, origins, dirs) = scene(2, 50);
+    let out = FastRenderer::new(&model, &prepared, &frames)
+        .unwrap()
+        .render(&origins, &dirs, None, None)
+        .unwrap();
+    for row in out.shadow.chunks_exact(3) {
+        assert_eq!(row[0], 0.0);
+        assert!(row[1] > 0.0 && row[2] > 0.0);
+    }
 }
 
 #[test]

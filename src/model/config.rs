@@ -90,6 +90,13 @@ pub struct Config {
     /// the image (see `frames.rs`). 0 = off. Absent in older files (= 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub frame_ground_height: f64,
+    /// Foreground slots cast shadows on the background: each slot's light field also gives a
+    /// shadow density σ ≥ 0 per ray (`heads.shadow`), and the background's colour on a ray is
+    /// multiplied by exp(−Σ σ) over the foreground slots. The shadow belongs to the object's
+    /// slot, so it moves, duplicates and disappears with it in edits, and the pixel stays the
+    /// background's in the segmentation. Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub shadow_head: bool,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -197,6 +204,7 @@ impl Config {
             attention_frames: false,
             fg_locality: 0.0,
             frame_ground_height: 0.0,
+            shadow_head: false,
             volumetric: None,
         }
     }
@@ -232,6 +240,7 @@ impl Config {
             attention_frames: false,
             fg_locality: 0.0,
             frame_ground_height: 0.0,
+            shadow_head: false,
             volumetric: None,
         }
     }
@@ -349,6 +358,9 @@ impl Config {
             bail!("model config: `static_background` needs `zero_background` (an image-dependent background needs its hypernetwork)");
         }
         if let Some(v) = &self.volumetric {
+            if self.shadow_head {
+                bail!("model config: `shadow_head` applies to light-field models, not the volumetric baseline");
+            }
             v.validate()?;
         }
         Ok(())

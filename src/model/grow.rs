@@ -7,6 +7,8 @@
 //!   zero output weights;
 //! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
 //!   biases and zero outgoing weights (in a hypernetwork, the heads' rows that generate them).
+//! - `shadow_head`: a fresh shadow head whose gate is 0 (no slot casts a shadow until training
+//!   opens it; see `heads.rs`).
 //!
 //! Zero outgoing weights keep every output unchanged until training moves them, and training can
 //! move them: the new units are active, so those weights receive gradients. Fresh values are
@@ -58,6 +60,17 @@ pub fn grow_tensors(
         out.retain(|k, _| !k.starts_with("hypernet_bg."));
     } else if old.static_background && !cfg.static_background {
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
+    }
+    if cfg.shadow_head && !old.shadow_head {
+        // A fresh shadow head: its gate starts at 0, so no slot casts a shadow yet.
+        let fresh = super::Colf::init(cfg, seed)?;
+        for (key, tensor) in fresh.parameters() {
+            if key.starts_with("heads.shadow.") {
+                out.insert(key.clone(), tensor.clone());
+            }
+        }
+    } else if old.shadow_head && !cfg.shadow_head {
+        bail!("{name}: a model's shadow head cannot be removed");
     }
     for (key, from, to) in [
         ("hypernet_hidden", old.hypernet_hidden, cfg.hypernet_hidden),

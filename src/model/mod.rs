@@ -78,10 +78,12 @@ pub struct Decoded {
     pub weights: Tensor,
     /// log of `weights`, by log-softmax (use for losses on the weights) [B, R, S].
     pub log_weights: Tensor,
-    /// Each field's colour [B, R, S, 3].
+    /// Each field's colour [B, R, S, 3]; the background's already darkened by the shadows.
     pub colors: Tensor,
     /// World-comparable ordering values minus the per-ray `RayBatch::base` [B, R, S].
     pub ordering: Tensor,
+    /// Each field's shadow density σ [B, R, S] (0 for the background), with a shadow head.
+    pub shadow: Option<Tensor>,
 }
 
 /// A light-field model's decoder modules read as fields of the model (`model.heads`,
@@ -194,8 +196,23 @@ impl ColfModel {
         }
         let features = fields.forward(&rays.coords)?; // [B·S, R, F]
         let (color, ordering) = lf.heads.forward(&features)?;
-        let colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]
+        let mut colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]
         let ordering = ordering.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
+        let shadow = match lf.heads.shadow(&features)? {
+            Some(sigma) => {
+                // The background's own σ is not used: only foreground slots cast shadows.
+                let sigma = sigma.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
+                let background = colors.narrow(2, 0, 1)?;
+                if s > 1 {
+                    let lit = sigma.narrow(2, 1, s - 1)?.sum_keepdim(2)?.neg()?.exp()?;
+                    let shaded = background.broadcast_mul(&lit.unsqueeze(3)?)?;
+                    colors = Tensor::cat(&[&shaded, &colors.narrow(2, 1, s - 1)?], 2)?;
+                }
+                let zero = sigma.narrow(2, 0, 1)?.zeros_like()?;
+                Some(Tensor::cat(&[&zero, &sigma.narrow(2, 1, s - 1)?], 2)?)
+            }
+            None => None,
+        };
         let comp = lf
             .compositor
             .forward(&ordering.contiguous()?, &rays.shift)?;
@@ -206,6 +223,7 @@ impl ColfModel {
             log_weights: comp.log_weights,
             colors,
             ordering: comp.ordering,
+            shadow,
         })
     }
 }
@@ -261,6 +279,9 @@ pub struct RayOutput {
     /// World-comparable ordering values R×(1 + K) (≈ distance along the ray from its origin,
     /// up to the model's learned offset), same columns.
     pub ordering: Vec<f32>,
+    /// Shadow density σ R×(1 + K) that each slot casts on the background (`Config::shadow_head`;
+    /// 0 for the background and for models without shadows), same columns.
+    pub shadow: Vec<f32>,
     /// 1 + K.
     pub fields: usize,
 }
@@ -272,6 +293,7 @@ impl RayOutput {
             rgb: Vec::with_capacity(3 * rays),
             weights: Vec::with_capacity(fields * rays),
             ordering: Vec::with_capacity(fields * rays),
+            shadow: Vec::with_capacity(fields * rays),
             fields,
         }
     }
@@ -329,6 +351,24 @@ impl Colf {
         cfg.validate()?;
         let tensors = grow::grow_tensors(&self.model, &self.params, cfg, seed, name)?;
         Colf::build(cfg.clone(), tensors, None, name)
+    }
+
+    /// The same model with parameter `name` replaced by `value` (same shape), e.g. to open a
+    /// shadow head's gate in a test or a tool; the identity is recomputed.
+    pub fn with_tensor(&self, name: &str, value: Tensor) -> Result<Colf> {
+        let Some(old) = self.params.get(name) else {
+            bail!("the model has no tensor `{name}`");
+        };
+        if old.dims() != value.dims() {
+            bail!(
+                "tensor `{name}` has shape {:?}, not {:?}",
+                old.dims(),
+                value.dims()
+            );
+        }
+        let mut tensors = self.params.clone();
+        tensors.insert(name.to_string(), value.to_dtype(DType::F32)?);
+        Colf::build(self.model.cfg.clone(), tensors, None, "model")
     }
 
     /// Builds the module tree of `cfg` on `tensors`, checking that the tensors are exactly the
@@ -627,6 +667,10 @@ impl Colf {
             for (i, o) in ordering.iter().enumerate() {
                 out.ordering.push((*o as f64 + rays.base[i / s]) as f32);
             }
+            match &dec.shadow {
+                Some(sigma) => out.shadow.extend(sigma.flatten_all()?.to_vec1::<f32>()?),
+                None => out.shadow.resize(out.ordering.len(), 0.0),
+            }
         }
         Ok(out)
     }
@@ -675,6 +719,7 @@ impl Colf {
             out.ordering
                 .extend(v.depth.flatten_all()?.to_vec1::<f32>()?);
         }
+        out.shadow.resize(out.ordering.len(), 0.0);
         Ok(out)
     }
 }
