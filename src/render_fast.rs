@@ -25,6 +25,7 @@
 
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
+use crate::model::heads::softplus_host;
 use crate::model::rays::plucker_in_frame;
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
@@ -169,12 +170,11 @@ struct LightFieldHost {
     shift_cfg: Config,
 }
 
-/// `heads.shadow` on the host: σ = gate · sigmoid(w·f + b), the gate's gain applied.
+/// `heads.shadow` on the host: σ = softplus(w·f + b).
 struct ShadowHost {
     /// w, one per feature (the [F, 1] weight of a `HostDense`).
     weight: Vec<f32>,
     bias: f32,
-    gate: f32,
 }
 
 impl LightFieldHost {
@@ -256,13 +256,9 @@ impl LightFieldHost {
             .to_vec1::<f32>()?[0];
         let shadow = if cfg.shadow_head {
             let logit = linear(colf, "heads.shadow", true)?;
-            let gate = param(colf, "heads.shadow.gate")?
-                .flatten_all()?
-                .to_vec1::<f32>()?;
             Some(ShadowHost {
                 weight: logit.w,
                 bias: logit.b[0],
-                gate: gate[0] * crate::model::heads::SHADOW_GATE_GAIN as f32,
             })
         } else {
             None
@@ -542,7 +538,7 @@ impl FastRenderer {
                     let f = &sc.a[j * x_w..(j + 1) * x_w];
                     let logit: f32 =
                         sh.bias + f.iter().zip(&sh.weight).map(|(a, b)| a * b).sum::<f32>();
-                    shadow[ri * s + si] = sh.gate * sigmoid(logit);
+                    shadow[ri * s + si] = softplus_host(logit);
                 }
             }
             // Heads (features in a).

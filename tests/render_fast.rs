@@ -130,11 +130,20 @@ fn light_field_with_shadows_matches_candle() {
     let cfg = Config::small()
         .with_overrides(&["shadow_head=true".into()])
         .unwrap();
+    // Strong shadows (bias −1: σ ≈ 0.31 where w·f = 0), and weights on the features.
     let model = Colf::init(&cfg, 3)
         .unwrap()
         .with_tensor(
-            "heads.shadow.gate",
-            candle_core::Tensor::new(&[0.05f32], &candle_core::Device::Cpu).unwrap(),
+            "heads.shadow.bias",
+            candle_core::Tensor::new(&[-1f32], &candle_core::Device::Cpu).unwrap(),
+        )
+        .unwrap();
+    let w: Vec<f32> = noise(cfg.lfn_features, 5).iter().map(|v| 0.3 * v).collect();
+    let model = model
+        .with_tensor(
+            "heads.shadow.weight",
+            candle_core::Tensor::from_vec(w, (1, cfg.lfn_features), &candle_core::Device::Cpu)
+                .unwrap(),
         )
         .unwrap();
     compare_model(&model, 4, 500, 2e-3);

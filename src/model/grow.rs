@@ -7,8 +7,9 @@
 //!   zero output weights;
 //! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
 //!   biases and zero outgoing weights (in a hypernetwork, the heads' rows that generate them).
-//! - `shadow_head`: a fresh shadow head whose gate is 0 (no slot casts a shadow until training
-//!   opens it; see `heads.rs`).
+//! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
+//!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
+//!   growth that changes renders, by that much; see `heads.rs`).
 //!
 //! Zero outgoing weights keep every output unchanged until training moves them, and training can
 //! move them: the new units are active, so those weights receive gradients. Fresh values are
@@ -62,7 +63,7 @@ pub fn grow_tensors(
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
     }
     if cfg.shadow_head && !old.shadow_head {
-        // A fresh shadow head: its gate starts at 0, so no slot casts a shadow yet.
+        // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).
         let fresh = super::Colf::init(cfg, seed)?;
         for (key, tensor) in fresh.parameters() {
             if key.starts_with("heads.shadow.") {

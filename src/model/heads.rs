@@ -3,53 +3,56 @@
 //! also a shadow density σ (see [`ShadowHead`]). Shared by the background and the foreground
 //! slots. Tensor names: `heads.color.layers.{i}.{weight,bias}`,
 //! `heads.ordering.layers.{i}.{weight,bias}`, i = 0 … head_hidden_layers;
-//! `heads.shadow.{weight [1, F], bias [1], gate [1]}`.
+//! `heads.shadow.{weight [1, F], bias [1]}`.
 
 use super::config::Config;
 use super::layers::Mlp;
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 
-/// Bias of the shadow logit at initialisation: sigmoid(−4) ≈ 0.018, so a new slot's shadow
-/// starts faint everywhere and grows only where the colour loss asks for it.
-pub const SHADOW_BIAS_INIT: f64 = -4.0;
+/// Bias of the shadow logit at initialisation (with zero weights): every slot starts with
+/// σ = softplus(−8) ≈ 3.4·10⁻⁴ on every ray, so adding the head to a trained model darkens its
+/// background by 0.03 % per slot, and the weights learn where the shadows are from there.
+pub const SHADOW_BIAS_INIT: f64 = -8.0;
 
-/// The gate's gain: σ uses `SHADOW_GATE_GAIN`·gate, so Adam, which moves a parameter by about
-/// the learning rate a step whatever its gradient's scale, opens shadows within ~10³ steps at
-/// 10⁻⁴ (at gain 1 the gate had moved 0.0002 after 30 such steps).
-pub const SHADOW_GATE_GAIN: f64 = 10.0;
-
-/// How much a foreground slot darkens the background on a ray: σ = g · gate · sigmoid(w·f + b)
-/// (g = [`SHADOW_GATE_GAIN`]),
-/// f the slot's ray feature. The compositor multiplies the background's colour by
-/// exp(−Σ σ) over the foreground slots (`ColfModel::decode`).
+/// How much a foreground slot darkens the background on a ray: σ = softplus(w·f + b) ≥ 0, f the
+/// slot's ray feature. The compositor multiplies the background's colour by exp(−Σ σ) over the
+/// foreground slots (`ColfModel::decode`).
 ///
-/// Why the gate: it starts at 0, so adding the head to a trained model changes nothing it
-/// computes (`grow.rs`), yet the gate receives a gradient from the first step (wherever the
-/// background's colour is wrong), and w, b follow once it is non-zero.
+/// Why softplus and this initialisation: σ must be ≥ 0 and start near 0, and every parameter
+/// must receive a consistent gradient from the first step. A gate initialised at 0 (σ = gate ·
+/// sigmoid(…)) kept the function exactly but did not train: the gradient of w is proportional
+/// to the gate, and the gate's own gradient (darker in shadows, brighter on lit floor) averaged
+/// out, so after 1,000 steps it was still 3·10⁻⁵. With w = 0 and b = −8 the gradient of w is
+/// the correlation of the ray features with where the background is too bright.
 #[derive(Clone, Debug)]
 pub struct ShadowHead {
     logit: Linear,
-    gate: Tensor,
 }
 
 impl ShadowHead {
     fn new(features: usize, vb: VarBuilder) -> Result<ShadowHead> {
-        let a = 1.0 / (features as f64).sqrt();
-        let weight = vb.get_with_hints((1, features), "weight", Init::Uniform { lo: -a, up: a })?;
+        let weight = vb.get_with_hints((1, features), "weight", Init::Const(0.0))?;
         let bias = vb.get_with_hints(1, "bias", Init::Const(SHADOW_BIAS_INIT))?;
-        let gate = vb.get_with_hints(1, "gate", Init::Const(0.0))?;
         Ok(ShadowHead {
             logit: Linear::new(weight, Some(bias)),
-            gate,
         })
     }
 
     /// features [.., F] → σ [.., 1].
     pub fn forward(&self, features: &Tensor) -> Result<Tensor> {
-        let gate = (&self.gate * SHADOW_GATE_GAIN)?;
-        candle_nn::ops::sigmoid(&self.logit.forward(features)?)?.broadcast_mul(&gate)
+        softplus(&self.logit.forward(features)?)
     }
+}
+
+/// softplus(x) = ln(1 + eˣ), as max(x, 0) + ln(1 + e^−|x|): no overflow for large x.
+fn softplus(x: &Tensor) -> Result<Tensor> {
+    x.relu()? + (x.abs()?.neg()?.exp()? + 1.0)?.log()?
+}
+
+/// softplus on the host, the same formula as [`ShadowHead`]'s.
+pub fn softplus_host(x: f32) -> f32 {
+    x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
 #[derive(Clone, Debug)]

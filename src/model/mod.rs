@@ -353,8 +353,8 @@ impl Colf {
         Colf::build(cfg.clone(), tensors, None, name)
     }
 
-    /// The same model with parameter `name` replaced by `value` (same shape), e.g. to open a
-    /// shadow head's gate in a test or a tool; the identity is recomputed.
+    /// The same model with parameter `name` replaced by `value` (same shape), e.g. to set a
+    /// shadow head's bias in a test; the identity is recomputed.
     pub fn with_tensor(&self, name: &str, value: Tensor) -> Result<Colf> {
         let Some(old) = self.params.get(name) else {
             bail!("the model has no tensor `{name}`");
