@@ -25,7 +25,7 @@
 
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
-use crate::model::heads::softplus_host;
+use crate::model::heads::shadow_host;
 use crate::model::rays::plucker_in_frame;
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
@@ -170,7 +170,7 @@ struct LightFieldHost {
     shift_cfg: Config,
 }
 
-/// `heads.shadow` on the host: σ = softplus(w·f + b).
+/// `heads.shadow` on the host (σ from w·f + b by `shadow_host`).
 struct ShadowHost {
     /// w, one per feature (the [F, 1] weight of a `HostDense`).
     weight: Vec<f32>,
@@ -538,7 +538,7 @@ impl FastRenderer {
                     let f = &sc.a[j * x_w..(j + 1) * x_w];
                     let logit: f32 =
                         sh.bias + f.iter().zip(&sh.weight).map(|(a, b)| a * b).sum::<f32>();
-                    shadow[ri * s + si] = softplus_host(logit);
+                    shadow[ri * s + si] = shadow_host(logit);
                 }
             }
             // Heads (features in a).

@@ -290,7 +290,7 @@ fn a_shadow_head_starts_faint_and_darkens_only_the_background() {
     let strong = faint
         .with_tensor(
             "heads.shadow.bias",
-            Tensor::new(&[-1f32], &Device::Cpu).unwrap(),
+            Tensor::new(&[-0.1f32], &Device::Cpu).unwrap(),
         )
         .unwrap();
     let [rgb_strong, weights_strong] = rendered(&strong);

@@ -130,15 +130,19 @@ fn light_field_with_shadows_matches_candle() {
     let cfg = Config::small()
         .with_overrides(&["shadow_head=true".into()])
         .unwrap();
-    // Strong shadows (bias −1: σ ≈ 0.31 where w·f = 0), and weights on the features.
+    // Strong shadows (bias −0.1: σ = softplus(−1) ≈ 0.31 where w·f = 0), weights on the
+    // features.
     let model = Colf::init(&cfg, 3)
         .unwrap()
         .with_tensor(
             "heads.shadow.bias",
-            candle_core::Tensor::new(&[-1f32], &candle_core::Device::Cpu).unwrap(),
+            candle_core::Tensor::new(&[-0.1f32], &candle_core::Device::Cpu).unwrap(),
         )
         .unwrap();
-    let w: Vec<f32> = noise(cfg.lfn_features, 5).iter().map(|v| 0.3 * v).collect();
+    let w: Vec<f32> = noise(cfg.lfn_features, 5)
+        .iter()
+        .map(|v| 0.03 * v)
+        .collect();
     let model = model
         .with_tensor(
             "heads.shadow.weight",

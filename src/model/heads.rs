@@ -10,13 +10,18 @@ use super::layers::Mlp;
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 
-/// Bias of the shadow logit at initialisation (with zero weights): every slot starts with
-/// σ = softplus(−8) ≈ 3.4·10⁻⁴ on every ray, so adding the head to a trained model darkens its
-/// background by 0.03 % per slot, and the weights learn where the shadows are from there.
-pub const SHADOW_BIAS_INIT: f64 = -8.0;
+/// The shadow logit is `SHADOW_LOGIT_GAIN`·(w·f + b): Adam moves each parameter by about the
+/// learning rate a step whatever its gradient's scale, so the gain is the head's learning rate
+/// relative to the rest of the model (at gain 1 and 10⁻⁴, b had moved 0.004 in 750 steps).
+pub const SHADOW_LOGIT_GAIN: f64 = 10.0;
 
-/// How much a foreground slot darkens the background on a ray: σ = softplus(w·f + b) ≥ 0, f the
-/// slot's ray feature. The compositor multiplies the background's colour by exp(−Σ σ) over the
+/// b at initialisation (with w = 0): every slot starts with σ = softplus(−8) ≈ 3.4·10⁻⁴ on every
+/// ray, so adding the head to a trained model darkens its background by 0.03 % per slot, and w
+/// learns where the shadows are from there.
+pub const SHADOW_BIAS_INIT: f64 = -8.0 / SHADOW_LOGIT_GAIN;
+
+/// How much a foreground slot darkens the background on a ray: σ = softplus(g·(w·f + b)) ≥ 0, f
+/// the slot's ray feature, g = [`SHADOW_LOGIT_GAIN`]. The compositor multiplies the background's colour by exp(−Σ σ) over the
 /// foreground slots (`ColfModel::decode`).
 ///
 /// Why softplus and this initialisation: σ must be ≥ 0 and start near 0, and every parameter
@@ -41,7 +46,7 @@ impl ShadowHead {
 
     /// features [.., F] → σ [.., 1].
     pub fn forward(&self, features: &Tensor) -> Result<Tensor> {
-        softplus(&self.logit.forward(features)?)
+        softplus(&(self.logit.forward(features)? * SHADOW_LOGIT_GAIN)?)
     }
 }
 
@@ -50,8 +55,9 @@ fn softplus(x: &Tensor) -> Result<Tensor> {
     x.relu()? + (x.abs()?.neg()?.exp()? + 1.0)?.log()?
 }
 
-/// softplus on the host, the same formula as [`ShadowHead`]'s.
-pub fn softplus_host(x: f32) -> f32 {
+/// σ on the host from w·f + b, the same formula as [`ShadowHead`]'s.
+pub fn shadow_host(affine: f32) -> f32 {
+    let x = affine * SHADOW_LOGIT_GAIN as f32;
     x.max(0.0) + (-x.abs()).exp().ln_1p()
 }
 
