@@ -131,7 +131,10 @@ mod tests {
     use glam::DMat4;
 
     fn setup() -> (Colf, FastRenderer, Frame) {
-        let model = Colf::init(&Config::small(), 1).unwrap();
+        setup_with(Colf::init(&Config::small(), 1).unwrap())
+    }
+
+    fn setup_with(model: Colf) -> (Colf, FastRenderer, Frame) {
         let latents: Vec<Vec<f32>> = (0..3)
             .map(|k| {
                 (0..64)
@@ -213,5 +216,30 @@ mod tests {
             }
             assert_eq!(mask[(y * 18 + x) * 4 + k], best > 0.3, "slot {k}");
         }
+    }
+
+    #[test]
+    fn a_slot_is_evaluated_where_its_shadow_reaches_even_where_it_has_no_weight() {
+        let (_m, plain, frame) = setup();
+        let (_, stats) = active_mask(&plain, &frame, 0.3).unwrap();
+        assert!(stats.evaluated < stats.possible);
+        // The same weights with a shadow head casting σ = softplus(−1) ≈ 0.31 on every ray.
+        let cfg = Config::small()
+            .with_overrides(&["shadow_head=true".into()])
+            .unwrap();
+        let shadowed = Colf::init(&Config::small(), 1)
+            .unwrap()
+            .reconfigured(&cfg, 1, "m")
+            .unwrap()
+            .with_tensor(
+                "heads.shadow.bias",
+                candle_core::Tensor::new(&[-0.1f32], &candle_core::Device::Cpu).unwrap(),
+            )
+            .unwrap();
+        let (_m, r, frame) = setup_with(shadowed);
+        let (o, d) = rays(&frame);
+        let (out, stats) = render_adaptive(&r, &frame, &o, &d, 0.3).unwrap();
+        assert_eq!(stats.evaluated, stats.possible);
+        assert_eq!(out, r.render(&o, &d, None, None).unwrap());
     }
 }
