@@ -347,6 +347,7 @@ fn linearised_batch(
     };
     let shift_at = absolute(&at)?;
     let mut coords = at.coords.clone();
+    let mut shadow_lines = at.shadow_lines.clone();
     let mut shift = at.shift.clone();
     // The background (field 0) never moves: its offset is a constant 0.
     let zero = Tensor::zeros(1, candle_core::DType::F32, dev)?;
@@ -357,14 +358,23 @@ fn linearised_batch(
         }
         let (ahead, _) = batch(model, &moved, origins, dirs, rgb, Some(pick))?;
         let per_field = Tensor::cat(&[&zero, &offset.as_tensor().get(axis)?], 0)?; // [S]
+        let per_line = per_field.reshape((s, 1, 1))?;
         let d_coords = ((&ahead.coords - &at.coords)? / FRAME_STEP)?;
-        coords = (coords + d_coords.broadcast_mul(&per_field.reshape((s, 1, 1))?)?)?;
+        coords = (coords + d_coords.broadcast_mul(&per_line)?)?;
+        // Shadow lines move with the frames too (their ground mask does not).
+        if let (Some((lines, _)), Some((ahead_lines, _)), Some((at_lines, _))) =
+            (shadow_lines.as_mut(), &ahead.shadow_lines, &at.shadow_lines)
+        {
+            let d_lines = ((ahead_lines - at_lines)? / FRAME_STEP)?;
+            *lines = (&*lines + d_lines.broadcast_mul(&per_line)?)?;
+        }
         let d_shift = ((absolute(&ahead)? - &shift_at)? / FRAME_STEP)?;
         shift = (shift + d_shift.broadcast_mul(&per_field.reshape((1, 1, s))?)?)?;
     }
     Ok((
         RayBatch {
             coords,
+            shadow_lines,
             shift,
             base: at.base,
             scenes: 1,

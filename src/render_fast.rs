@@ -26,7 +26,7 @@
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
 use crate::model::heads::shadow_host;
-use crate::model::rays::plucker_in_frame;
+use crate::model::rays::{encode_line, light_direction, shadow_line};
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -170,11 +170,26 @@ struct LightFieldHost {
     shift_cfg: Config,
 }
 
-/// `heads.shadow` on the host (σ from w·f + b by `shadow_host`).
+/// `heads.shadow` on the host.
 struct ShadowHost {
     /// w, one per feature (the [F, 1] weight of a `HostDense`).
     weight: Vec<f32>,
     bias: f32,
+    /// Toward the light, with `Config::shadow_light`.
+    to_light: Option<DVec3>,
+}
+
+impl ShadowHost {
+    /// σ of one ray (or shadow line) feature, as `ShadowHead::forward`.
+    fn sigma(&self, feature: &[f32]) -> f32 {
+        let affine: f32 = self.bias
+            + feature
+                .iter()
+                .zip(&self.weight)
+                .map(|(a, b)| a * b)
+                .sum::<f32>();
+        shadow_host(affine)
+    }
 }
 
 impl LightFieldHost {
@@ -259,6 +274,7 @@ impl LightFieldHost {
             Some(ShadowHost {
                 weight: logit.w,
                 bias: logit.b[0],
+                to_light: cfg.shadow_light.map(light_direction),
             })
         } else {
             None
@@ -277,9 +293,24 @@ impl LightFieldHost {
             in_dim: cfg.ray_input_dim(),
             shift_cfg: Config {
                 ray_fourier_freqs: 0,
+                shadow_light: None,
                 ..cfg.clone()
             },
         })
+    }
+
+    /// Runs field `si`'s light field on the first `m` rows of `sc.a` (encoded lines): ReLU
+    /// layers, then the linear feature layer; the features end in `sc.a`. Returns their width.
+    fn run_field(&self, si: usize, m: usize, sc: &mut Scratch) -> usize {
+        let layers = &self.fields[si];
+        let mut x_w = self.in_dim;
+        for (li, layer) in layers.iter().enumerate() {
+            let relu = li + 1 < layers.len();
+            layer.run(&sc.a, x_w, m, &mut sc.b, layer.output, relu);
+            std::mem::swap(&mut sc.a, &mut sc.b);
+            x_w = layer.output;
+        }
+        x_w
     }
 
     fn max_width(&self) -> usize {
@@ -303,6 +334,7 @@ struct Scratch {
     b: Vec<f32>,
     c: Vec<f32>,
     rows: Vec<usize>,
+    lit_rows: Vec<usize>,
     colors: Vec<f32>,
     order: Vec<f32>,
     world: Vec<f32>,
@@ -505,40 +537,40 @@ impl FastRenderer {
             if m == 0 {
                 continue;
             }
-            // Bounded Plücker coordinates and Fourier features, exactly as `RayBatch`.
+            // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
             let inv = &self.inverses[si];
             for (j, &ri) in sc.rows.iter().enumerate() {
-                let p = plucker_in_frame(inv, origins[ri], dirs[ri], lf.scene_scale);
                 let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-                for (c, v) in p.iter().enumerate() {
-                    out[c] = *v as f32;
-                    if lf.freqs == 0 {
-                        continue;
-                    }
-                    let (mut sin, mut cos) = (std::f64::consts::PI * v).sin_cos();
-                    for f in 0..lf.freqs {
-                        out[6 + 12 * f + c] = sin as f32;
-                        out[12 + 12 * f + c] = cos as f32;
-                        (sin, cos) = (2.0 * sin * cos, 1.0 - 2.0 * sin * sin);
-                    }
-                }
+                encode_line(out, inv, origins[ri], dirs[ri], lf.scene_scale, lf.freqs);
             }
-            // The light field: ReLU layers, linear feature layer.
-            let layers = &lf.fields[si];
-            let mut x_w = in_dim;
-            for (li, layer) in layers.iter().enumerate() {
-                let relu = li + 1 < layers.len();
-                layer.run(&sc.a, x_w, m, &mut sc.b, layer.output, relu);
-                std::mem::swap(&mut sc.a, &mut sc.b);
-                x_w = layer.output;
-            }
-            // Shadow density of a foreground slot (features in a), as `ShadowHead`.
+            let x_w = lf.run_field(si, m, sc);
+            // Shadow density of a foreground slot, as `ShadowHead`: from the features of the
+            // rays (in a), or of their shadow lines (`shadow_light`).
             if let (Some(sh), true) = (&lf.shadow, si > 0) {
-                for (j, &ri) in sc.rows.iter().enumerate() {
-                    let f = &sc.a[j * x_w..(j + 1) * x_w];
-                    let logit: f32 =
-                        sh.bias + f.iter().zip(&sh.weight).map(|(a, b)| a * b).sum::<f32>();
-                    shadow[ri * s + si] = shadow_host(logit);
+                match sh.to_light {
+                    None => {
+                        for (j, &ri) in sc.rows.iter().enumerate() {
+                            shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
+                        }
+                    }
+                    Some(to_light) => {
+                        // Lines go through c (the features in a stay for the heads).
+                        sc.lit_rows.clear();
+                        for &ri in &sc.rows {
+                            if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
+                                let j = sc.lit_rows.len();
+                                let out = &mut sc.c[j * in_dim..(j + 1) * in_dim];
+                                encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
+                                sc.lit_rows.push(ri);
+                            }
+                        }
+                        std::mem::swap(&mut sc.a, &mut sc.c);
+                        let x_w = lf.run_field(si, sc.lit_rows.len(), sc);
+                        for (j, &ri) in sc.lit_rows.iter().enumerate() {
+                            shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
+                        }
+                        std::mem::swap(&mut sc.a, &mut sc.c);
+                    }
                 }
             }
             // Heads (features in a).

@@ -38,6 +38,7 @@ fn tiny() -> Config {
         fg_locality: 0.0,
         frame_ground_height: 0.0,
         shadow_head: false,
+        shadow_light: None,
         volumetric: None,
     }
 }
@@ -271,9 +272,18 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
 
 #[test]
 fn a_shadow_head_starts_faint_and_darkens_only_the_background() {
+    shadow_head_checks(&[]);
+    shadow_head_checks(&["shadow_light=[30, 55]".into()]);
+}
+
+/// The shadow head's properties with shadows read from the rays, or (`shadow_light`) from
+/// their shadow lines.
+fn shadow_head_checks(light: &[String]) {
     let cfg = tiny();
     let plain = Colf::init(&cfg, 3).unwrap();
-    let shadow_cfg = cfg.with_overrides(&["shadow_head=true".into()]).unwrap();
+    let mut overrides = vec!["shadow_head=true".to_string()];
+    overrides.extend_from_slice(light);
+    let shadow_cfg = cfg.with_overrides(&overrides).unwrap();
     let faint = plain.reconfigured(&shadow_cfg, 4, "m").unwrap();
     // Grown: the same segmentation, colours darker by at most 3 × softplus(−8) ≈ 0.1 %.
     let [rgb_plain, weights_plain] = rendered(&plain);

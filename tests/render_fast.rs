@@ -127,42 +127,64 @@ fn light_field_with_a_locality_bound_matches_candle() {
 
 #[test]
 fn light_field_with_shadows_matches_candle() {
-    let cfg = Config::small()
-        .with_overrides(&["shadow_head=true".into()])
-        .unwrap();
-    // Strong shadows (bias −0.1: σ = softplus(−1) ≈ 0.31 where w·f = 0), weights on the
-    // features.
-    let model = Colf::init(&cfg, 3)
-        .unwrap()
-        .with_tensor(
-            "heads.shadow.bias",
-            candle_core::Tensor::new(&[-0.1f32], &candle_core::Device::Cpu).unwrap(),
-        )
-        .unwrap();
-    let w: Vec<f32> = noise(cfg.lfn_features, 5)
-        .iter()
-        .map(|v| 0.03 * v)
-        .collect();
-    let model = model
-        .with_tensor(
-            "heads.shadow.weight",
-            candle_core::Tensor::from_vec(w, (1, cfg.lfn_features), &candle_core::Device::Cpu)
-                .unwrap(),
-        )
-        .unwrap();
-    compare_model(&model, 4, 500, 2e-3);
-    // The shadows are there: each foreground slot's σ on every ray, none for the background.
-    let prepared = model
-        .prepare(&[noise(64, 1), noise(64, 2)], &noise(64, 3))
-        .unwrap();
-    let (frames, origins, dirs) = scene(2, 50);
-    let out = FastRenderer::new(&model, &prepared, &frames)
-        .unwrap()
-        .render(&origins, &dirs, None, None)
-        .unwrap();
-    for row in out.shadow.chunks_exact(3) {
-        assert_eq!(row[0], 0.0);
-        assert!(row[1] > 0.0 && row[2] > 0.0);
+    // Shadows read on the rays themselves, and on their shadow lines toward a light.
+    for light in [None, Some("[30, 55]")] {
+        let mut overrides = vec!["shadow_head=true".to_string()];
+        overrides.extend(light.map(|l| format!("shadow_light={l}")));
+        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        // Strong shadows (bias −0.1: σ = softplus(−1) ≈ 0.31 where w·f = 0), weights on the
+        // features.
+        let w: Vec<f32> = noise(cfg.lfn_features, 5)
+            .iter()
+            .map(|v| 0.03 * v)
+            .collect();
+        let model = Colf::init(&cfg, 3)
+            .unwrap()
+            .with_tensor(
+                "heads.shadow.bias",
+                candle_core::Tensor::new(&[-0.1f32], &candle_core::Device::Cpu).unwrap(),
+            )
+            .unwrap()
+            .with_tensor(
+                "heads.shadow.weight",
+                candle_core::Tensor::from_vec(w, (1, cfg.lfn_features), &candle_core::Device::Cpu)
+                    .unwrap(),
+            )
+            .unwrap();
+        compare_model(&model, 4, 500, 2e-3);
+        // The shadows are there: each foreground slot's σ on every ray that meets the ground
+        // (all of them without a light), none for the background.
+        let prepared = model
+            .prepare(&[noise(64, 1), noise(64, 2)], &noise(64, 3))
+            .unwrap();
+        let (frames, origins, dirs) = scene(2, 50);
+        // Every fifth ray looks up, away from the ground.
+        let dirs: Vec<DVec3> = dirs
+            .iter()
+            .enumerate()
+            .map(|(i, d)| {
+                if i % 5 == 0 {
+                    DVec3::new(d.x, d.y, 0.5)
+                } else {
+                    *d
+                }
+            })
+            .collect();
+        let out = FastRenderer::new(&model, &prepared, &frames)
+            .unwrap()
+            .render(&origins, &dirs, None, None)
+            .unwrap();
+        let slow = model
+            .render_rays(&prepared, &frames, &origins, &dirs)
+            .unwrap();
+        assert!(max_diff(&slow.shadow, &out.shadow) < 1e-4);
+        assert!(max_diff(&slow.rgb, &out.rgb) < 1e-4);
+        for (row, (o, d)) in out.shadow.chunks_exact(3).zip(origins.iter().zip(&dirs)) {
+            assert_eq!(row[0], 0.0);
+            let meets_ground = o.z > 0.0 && d.z < 0.0;
+            let cast = light.is_none() || meets_ground;
+            assert_eq!(row[1] > 0.0 && row[2] > 0.0, cast, "{row:?}");
+        }
     }
 }
 

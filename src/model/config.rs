@@ -97,6 +97,15 @@ pub struct Config {
     /// background's in the segmentation. Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub shadow_head: bool,
+    /// With `shadow_head`, scenes on the ground plane z = 0 (world +Z up) lit by a distant light
+    /// at [azimuth, elevation] degrees (clevr567: about [30, 55]): a slot's shadow density on a
+    /// ray is read from its light field on the ray's *shadow line* — from where the ray meets
+    /// the ground toward the light — instead of on the ray itself. The light field already
+    /// knows which lines pass through its object (that is what its ordering and the mask losses
+    /// train), so the point is in shadow exactly when that line hits the object. Costs a second
+    /// light-field evaluation per ray and slot. Absent = shadows read from the ray itself.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shadow_light: Option<[f64; 2]>,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -205,6 +214,7 @@ impl Config {
             fg_locality: 0.0,
             frame_ground_height: 0.0,
             shadow_head: false,
+            shadow_light: None,
             volumetric: None,
         }
     }
@@ -241,6 +251,7 @@ impl Config {
             fg_locality: 0.0,
             frame_ground_height: 0.0,
             shadow_head: false,
+            shadow_light: None,
             volumetric: None,
         }
     }
@@ -356,6 +367,14 @@ impl Config {
         }
         if self.static_background && !self.zero_background {
             bail!("model config: `static_background` needs `zero_background` (an image-dependent background needs its hypernetwork)");
+        }
+        if let Some([azimuth, elevation]) = self.shadow_light {
+            if !self.shadow_head {
+                bail!("model config: `shadow_light` needs `shadow_head`");
+            }
+            if !(azimuth.is_finite() && elevation > 0.0 && elevation <= 90.0) {
+                bail!("model config: `shadow_light` must be [azimuth, elevation] in degrees with 0 < elevation ≤ 90");
+            }
         }
         if let Some(v) = &self.volumetric {
             if self.shadow_head {

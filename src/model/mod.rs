@@ -198,7 +198,20 @@ impl ColfModel {
         let (color, ordering) = lf.heads.forward(&features)?;
         let mut colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]
         let ordering = ordering.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
-        let shadow = match lf.heads.shadow(&features)? {
+                                                                      // σ from the light field on each ray's shadow line (`shadow_light`), else on the ray.
+        let shadow = match &rays.shadow_lines {
+            Some((lines, on_ground)) => lf
+                .heads
+                .shadow(&fields.forward(lines)?)?
+                .map(|sigma| {
+                    sigma
+                        .reshape((b, s, r))?
+                        .broadcast_mul(&on_ground.reshape((b, 1, r))?)
+                })
+                .transpose()?,
+            None => lf.heads.shadow(&features)?,
+        };
+        let shadow = match shadow {
             Some(sigma) => {
                 // The background's own σ is not used: only foreground slots cast shadows.
                 let sigma = sigma.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
@@ -208,8 +221,13 @@ impl ColfModel {
                     let shaded = background.broadcast_mul(&lit.unsqueeze(3)?)?;
                     colors = Tensor::cat(&[&shaded, &colors.narrow(2, 1, s - 1)?], 2)?;
                 }
+                // Report 0 for the background.
                 let zero = sigma.narrow(2, 0, 1)?.zeros_like()?;
-                Some(Tensor::cat(&[&zero, &sigma.narrow(2, 1, s - 1)?], 2)?)
+                if s > 1 {
+                    Some(Tensor::cat(&[&zero, &sigma.narrow(2, 1, s - 1)?], 2)?)
+                } else {
+                    Some(zero)
+                }
             }
             None => None,
         };

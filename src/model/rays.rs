@@ -41,6 +41,9 @@ pub struct SceneRays<'a> {
 pub struct RayBatch {
     /// Encoded rays [B·S, R, in], field-major within a scene.
     pub coords: Tensor,
+    /// With `Config::shadow_light`: each ray's shadow line (see [`shadow_line`]), encoded like
+    /// `coords` [B·S, R, in], and [B, R, 1] 1 where the ray meets the ground, else 0.
+    pub shadow_lines: Option<(Tensor, Tensor)>,
     /// Ordering shifts minus `base`, [B, R, S], world units.
     pub shift: Tensor,
     /// Per ray the subtracted base shift [B·R], world units.
@@ -57,6 +60,56 @@ pub fn plucker_in_frame(world_to_frame: &DMat4, o: DVec3, d: DVec3, scene_scale:
     let m = o_f.cross(d_f) / scene_scale;
     let m = m / (1.0 + m.length_squared()).sqrt();
     [d_f.x, d_f.y, d_f.z, m.x, m.y, m.z]
+}
+
+/// Writes the encoding of the line (o, d) in the frame `world_to_frame` to `out`
+/// (`Config::ray_input_dim` values): the 6 bounded Plücker coordinates, then sin/cos of each at
+/// `freqs` octaves. The one encoding of rays and shadow lines, here and in `render_fast.rs`.
+pub fn encode_line(
+    out: &mut [f32],
+    world_to_frame: &DMat4,
+    o: DVec3,
+    d: DVec3,
+    scene_scale: f64,
+    freqs: usize,
+) {
+    let p = plucker_in_frame(world_to_frame, o, d, scene_scale);
+    for (c, v) in p.iter().enumerate() {
+        out[c] = *v as f32;
+        if freqs == 0 {
+            continue;
+        }
+        // sin/cos(2^f·π·v) by the double-angle formulas from f = 0: one sin/cos per coordinate
+        // instead of one per frequency (sin/cos were 4 % of a training step); f64 keeps the
+        // error of ≤ 16 doublings far below f32 resolution.
+        let (mut sin, mut cos) = (std::f64::consts::PI * v).sin_cos();
+        for f in 0..freqs {
+            out[6 + 12 * f + c] = sin as f32;
+            out[12 + 12 * f + c] = cos as f32;
+            (sin, cos) = (2.0 * sin * cos, 1.0 - 2.0 * sin * sin);
+        }
+    }
+}
+
+/// The unit vector toward a light at [azimuth, elevation] degrees (azimuth from +X toward +Y,
+/// elevation above the ground plane; world +Z up).
+pub fn light_direction([azimuth, elevation]: [f64; 2]) -> DVec3 {
+    let (sa, ca) = azimuth.to_radians().sin_cos();
+    let (se, ce) = elevation.to_radians().sin_cos();
+    DVec3::new(ce * ca, ce * sa, se)
+}
+
+/// The shadow line of the ray (o, d) for a light in direction `to_light`: the line through
+/// the point where the ray meets the ground plane z = 0 and the light — the point is in a slot's
+/// shadow when that line passes through the slot's object. Returned as (that ground point,
+/// −`to_light`): oriented from the light down to the ground, as the camera rays the light fields
+/// were trained on look down at the scene. None when the ray does not meet the ground ahead.
+pub fn shadow_line(o: DVec3, d: DVec3, to_light: DVec3) -> Option<(DVec3, DVec3)> {
+    if !(o.z > 0.0 && d.z < 0.0) {
+        return None;
+    }
+    let ground = o + d * (-o.z / d.z);
+    ground.is_finite().then_some((ground, -to_light))
 }
 
 /// Checks frames and rays; returns each frame's inverse.
@@ -112,6 +165,9 @@ impl RayBatch {
         let mut coords = vec![0f32; b * s * r * in_dim];
         let mut shift = vec![0f32; b * r * s];
         let mut base = vec![0f64; b * r];
+        let mut shadow = cfg
+            .shadow_light
+            .map(|_| (vec![0f32; b * s * r * in_dim], vec![0f32; b * r]));
         for (bi, scene) in scenes.iter().enumerate() {
             let inverses = check(bi, scene)?;
             let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
@@ -119,30 +175,41 @@ impl RayBatch {
                 frames.push((*inv, m.w_axis.truncate()));
             }
             let scene_coords = &mut coords[bi * s * r * in_dim..(bi + 1) * s * r * in_dim];
-            scene_coords
-                .par_chunks_mut(r * in_dim)
-                .zip(frames.par_iter())
-                .for_each(|(field, (inv, _))| {
-                    for (ri, out) in field.chunks_exact_mut(in_dim).enumerate() {
-                        let p = plucker_in_frame(inv, scene.origins[ri], scene.dirs[ri], scale);
-                        for (c, v) in p.iter().enumerate() {
-                            out[c] = *v as f32;
-                            if freqs == 0 {
-                                continue;
-                            }
-                            // sin/cos(2^f·π·v) by the double-angle formulas from f = 0:
-                            // one sin/cos per coordinate instead of one per frequency
-                            // (sin/cos were 4 % of a training step); f64 keeps the
-                            // error of ≤ 16 doublings far below f32 resolution.
-                            let (mut sin, mut cos) = (std::f64::consts::PI * v).sin_cos();
-                            for f in 0..freqs {
-                                out[6 + 12 * f + c] = sin as f32;
-                                out[12 + 12 * f + c] = cos as f32;
-                                (sin, cos) = (2.0 * sin * cos, 1.0 - 2.0 * sin * sin);
-                            }
+            let encode_all = |dest: &mut [f32], lines: &[(DVec3, DVec3)]| {
+                dest.par_chunks_mut(r * in_dim)
+                    .zip(frames.par_iter())
+                    .for_each(|(field, (inv, _))| {
+                        for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
+                            encode_line(out, inv, *o, *d, scale, freqs);
                         }
-                    }
-                });
+                    });
+            };
+            let camera_lines: Vec<(DVec3, DVec3)> = scene
+                .origins
+                .iter()
+                .copied()
+                .zip(scene.dirs.iter().copied())
+                .collect();
+            encode_all(scene_coords, &camera_lines);
+            if let Some((shadow_coords, on_ground)) = shadow.as_mut() {
+                let to_light = light_direction(cfg.shadow_light.expect("shadow buffers"));
+                // Rays that miss the ground keep their own line (any finite line): masked.
+                let lines: Vec<(DVec3, DVec3)> = camera_lines
+                    .iter()
+                    .enumerate()
+                    .map(|(ri, &(o, d))| match shadow_line(o, d, to_light) {
+                        Some(line) => {
+                            on_ground[bi * r + ri] = 1.0;
+                            line
+                        }
+                        None => (o, d),
+                    })
+                    .collect();
+                encode_all(
+                    &mut shadow_coords[bi * s * r * in_dim..(bi + 1) * s * r * in_dim],
+                    &lines,
+                );
+            }
             for ri in 0..r {
                 let o = scene.origins[ri];
                 let d = scene.dirs[ri].normalize();
@@ -167,8 +234,16 @@ impl RayBatch {
                 }
             }
         }
+        let shadow_lines = match shadow {
+            Some((lines, on_ground)) => Some((
+                Tensor::from_vec(lines, (b * s, r, in_dim), dev)?,
+                Tensor::from_vec(on_ground, (b, r, 1), dev)?,
+            )),
+            None => None,
+        };
         Ok(RayBatch {
             coords: Tensor::from_vec(coords, (b * s, r, in_dim), dev)?,
+            shadow_lines,
             shift: Tensor::from_vec(shift, (b, r, s), dev)?,
             base,
             scenes: b,
@@ -235,6 +310,60 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn shadow_lines_start_on_the_ground_and_point_at_the_light() {
+        let to_light = light_direction([30.0, 55.0]);
+        assert!((to_light.length() - 1.0).abs() < 1e-12);
+        assert!((to_light.z - 55f64.to_radians().sin()).abs() < 1e-12);
+        assert!((to_light.y / to_light.x - 30f64.to_radians().tan()).abs() < 1e-12);
+        let (ground, dir) = shadow_line(
+            DVec3::new(1.0, 2.0, 6.0),
+            DVec3::new(0.5, 0.0, -2.0),
+            to_light,
+        )
+        .unwrap();
+        assert!(ground.abs_diff_eq(DVec3::new(2.5, 2.0, 0.0), 1e-12));
+        assert_eq!(dir, -to_light);
+        // Rays that look up, run level, or start below the ground meet no ground ahead.
+        for (o, d) in [
+            (DVec3::new(0.0, 0.0, 5.0), DVec3::new(1.0, 0.0, 0.2)),
+            (DVec3::new(0.0, 0.0, 5.0), DVec3::X),
+            (DVec3::new(0.0, 0.0, -1.0), DVec3::NEG_Z),
+        ] {
+            assert!(shadow_line(o, d, to_light).is_none());
+        }
+        // In a batch: the shadow lines' coordinates and the ground mask.
+        let mut cfg = Config::small();
+        cfg.shadow_head = true;
+        cfg.shadow_light = Some([30.0, 55.0]);
+        let frames = [DMat4::from_translation(DVec3::new(0.3, -0.2, 0.5))];
+        let origins = [DVec3::new(1.0, 2.0, 6.0), DVec3::new(0.0, 0.0, 5.0)];
+        let dirs = [DVec3::new(0.5, 0.0, -2.0), DVec3::new(1.0, 0.0, 0.2)];
+        let scene = SceneRays {
+            slot_to_world: &frames,
+            origins: &origins,
+            dirs: &dirs,
+        };
+        let batch = RayBatch::new(&cfg, &[scene], &Device::Cpu).unwrap();
+        let (lines, on_ground) = batch.shadow_lines.unwrap();
+        let on_ground = on_ground.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(on_ground, vec![1.0, 0.0]);
+        let lines = lines.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        let in_dim = cfg.ray_input_dim();
+        // Field 1 (the slot), ray 0: the line from the light to (2.5, 2, 0) in its frame.
+        let mut expected = vec![0f32; in_dim];
+        encode_line(
+            &mut expected,
+            &frames[0].inverse(),
+            DVec3::new(2.5, 2.0, 0.0),
+            -to_light,
+            cfg.scene_scale,
+            cfg.ray_fourier_freqs,
+        );
+        let got = &lines[2 * in_dim..3 * in_dim];
+        assert!(got.iter().zip(&expected).all(|(a, b)| (a - b).abs() < 1e-6));
     }
 
     #[test]
