@@ -70,6 +70,11 @@ impl PreparedScene {
         Ok(())
     }
 
+    /// Renders without the slots' shadows from now on (see `FastRenderer::drop_shadows`).
+    pub fn drop_shadows(&mut self) {
+        self.renderer.drop_shadows();
+    }
+
     /// Number of foreground slots.
     pub fn num_slots(&self) -> usize {
         self.slot_to_world.len()

@@ -395,6 +395,15 @@ impl FastRenderer {
         })
     }
 
+    /// Renders without the shadows foreground slots cast (`Config::shadow_head`): one
+    /// light-field evaluation per ray and slot instead of two with `shadow_light`, the
+    /// background undarkened. No effect on a model without shadows.
+    pub fn drop_shadows(&mut self) {
+        if let Kind::LightField(lf) = &mut self.kind {
+            lf.shadow = None;
+        }
+    }
+
     /// Number of fields 1 + K.
     pub fn fields(&self) -> usize {
         self.inverses.len()

@@ -170,10 +170,15 @@ fn light_field_with_shadows_matches_candle() {
                 }
             })
             .collect();
-        let out = FastRenderer::new(&model, &prepared, &frames)
-            .unwrap()
-            .render(&origins, &dirs, None, None)
-            .unwrap();
+        let mut renderer = FastRenderer::new(&model, &prepared, &frames).unwrap();
+        let out = renderer.render(&origins, &dirs, None, None).unwrap();
+        // Without the shadows: the same segmentation, no pixel darker, some brighter.
+        renderer.drop_shadows();
+        let bright = renderer.render(&origins, &dirs, None, None).unwrap();
+        assert_eq!(bright.weights, out.weights);
+        assert!(bright.shadow.iter().all(|&v| v == 0.0));
+        assert!(bright.rgb.iter().zip(&out.rgb).all(|(b, o)| b >= o));
+        assert!(bright.rgb.iter().zip(&out.rgb).any(|(b, o)| b > o));
         let slow = model
             .render_rays(&prepared, &frames, &origins, &dirs)
             .unwrap();

@@ -77,6 +77,13 @@ pub struct RenderArgs {
     #[arg(long, value_name = "N")]
     pub samples: Option<usize>,
 
+    /// Leave out the shadows foreground slots cast on the background (models with a shadow
+    /// head): faster (one light-field evaluation per ray and slot instead of two when the
+    /// shadows are read along the light), with the background undarkened. No effect on models
+    /// without shadows.
+    #[arg(long)]
+    pub no_shadows: bool,
+
     /// No per-frame progress lines on stderr.
     #[arg(short, long)]
     pub quiet: bool,
@@ -118,7 +125,10 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         );
     }
     let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
-    let scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
+    let mut scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
+    if args.no_shadows {
+        scene.drop_shadows();
+    }
     let opts = crate::render::RenderOptions {
         samples: args.samples,
         adaptive: args.adaptive,
