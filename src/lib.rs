@@ -2,7 +2,8 @@
 //!
 //! One photo of a scene → a set of object slots, each a small latent code conditioning its own
 //! neural light field; slots are edited as data and rendered from any camera with a single
-//! network evaluation per ray per object. See `README.md` and `../shared/DESIGN.md`.
+//! network evaluation per ray per object (a second one along the light where objects cast
+//! shadows). See `README.md` and `../shared/DESIGN.md`.
 //!
 //! The modules each do one job:
 //! - [`io`]: stdin/stdout, atomic output files, terminal refusal.

@@ -1,4 +1,4 @@
-//! CLI tests of colf-render's speed options: `--adaptive [EPS]`, and the volumetric baseline
+//! CLI tests of colf-render's speed options: `--adaptive [EPS]`, `--no-shadows`, and the volumetric baseline
 //! (`colf-train init --preset volumetric`, `--samples N`) through encode | render.
 
 use assert_cmd::Command;
@@ -162,4 +162,42 @@ fn a_volumetric_model_encodes_and_renders_end_to_end() {
         "--samples",
     );
     assert!(!out.exists());
+}
+
+#[test]
+fn no_shadows_changes_nothing_for_a_model_without_shadows() {
+    // The bundled default model's slots cast no shadows (no `shadow_head`): the flag is accepted
+    // and the renders are the same bytes. (What it leaves out of a model with shadows is
+    // tested in tests/render_fast.rs.)
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let codes = dir.path().join("a.codes");
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .arg("-o")
+        .arg(&codes)
+        .assert()
+        .success();
+    let cams = scene.join("transforms.json");
+    let o = render(&codes, &cams, &dir.path().join("with"), &[]);
+    assert!(o.status.success(), "{o:?}");
+    let o = render(
+        &codes,
+        &cams,
+        &dir.path().join("without"),
+        &["--no-shadows"],
+    );
+    assert!(o.status.success(), "{o:?}");
+    for v in 0..4 {
+        for ext in ["png", "mask.png"] {
+            let name = format!("view_{v:03}.{ext}");
+            assert_eq!(
+                read(dir.path().join("with").join(&name)),
+                read(dir.path().join("without").join(&name)),
+                "{name}"
+            );
+        }
+    }
 }

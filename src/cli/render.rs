@@ -11,7 +11,9 @@ use clap::Parser;
     long_about = "Render every frame of CAMERAS (a transforms.json: camera-to-world, OpenGL \
 camera axes, world +Z up) from a codes file. Each slot's light field is evaluated once per ray \
 in its own frame (slot_to_world), the background in world space, and the compositor blends them \
-by their ordering values.\n\n\
+by their ordering values. A model whose slots cast shadows (shadow head) darkens the background \
+by them, reading each slot's light field once more along the light when it has a shadow light; \
+--no-shadows leaves them out.\n\n\
 Outputs, for a frame whose file_path stem is S (else frame_NNNN, NNNN = the frame index):\n\n\
   DIR/S.png        8-bit sRGB RGB\n\n\
   DIR/S.mask.png   with --masks: 8-bit grey, 0 = background, k + 1 = slot k (argmax of the \
