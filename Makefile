@@ -78,7 +78,9 @@ demo: build
 # constant to step 45,000, then a half cosine to 3e-5. Stage 3 (from stage 2, 18,000 steps,
 # 2,000 scenes, the first 400 being stage 2's): learning rate 1e-4, half cosine from step 10,000
 # to 2e-5. Stage 4 (from stage 3, 6,000 steps, the 2,000 scenes): rays drawn uniformly, learning
-# rate 5e-5, half cosine from step 3,000 to 1e-5. Re-running `make model` resumes from the
+# rate 5e-5, half cosine from step 3,000 to 1e-5. Stage 5 (from stage 4, 10,000 steps, the
+# 2,000 scenes): adds slots that cast shadows, read along the light ([30, 55] degrees);
+# learning rate 1e-4, half cosine from step 6,000 to 1e-5. Re-running `make model` resumes from the
 # checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the next has
 # started); the result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json, and with 50
 # refinement steps eval-refined.json), plotted ($(MODEL_RUN)/training.png) and copied to
@@ -106,15 +108,21 @@ model: build
 	  --steps 54000 --warmup 200 --decay-from 45000 --final-lr 3e-5 --seed 10 \
 	  --attention-mask-weight 0.1 \
 	  $(call resume_or_init,$(MODEL_RUN)/stage2.safetensors,$(MODEL_RUN)/stage1.safetensors)
-	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	test -f $(MODEL_RUN)/stage4.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/stage3.safetensors \
 	  --object-fraction 0.2 --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 \
 	  --final-lr 2e-5 --seed 11 \
 	  $(call resume_or_init,$(MODEL_RUN)/stage3.safetensors,$(MODEL_RUN)/stage2.safetensors)
-	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/stage4.safetensors \
 	  --object-fraction 0 --steps 6000 --lr 5e-5 --warmup 100 --decay-from 3000 \
 	  --final-lr 1e-5 --seed 12 \
-	  $(call resume_or_init,$(MODEL_RUN)/model.safetensors,$(MODEL_RUN)/stage3.safetensors)
+	  $(call resume_or_init,$(MODEL_RUN)/stage4.safetensors,$(MODEL_RUN)/stage3.safetensors)
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	  --object-fraction 0 --steps 10000 --lr 1e-4 --warmup 100 --decay-from 6000 \
+	  --final-lr 1e-5 --seed 23 \
+	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init \
+	  $(MODEL_RUN)/stage4.safetensors --set shadow_head=true --set 'shadow_light=[30,55]')
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json
