@@ -165,10 +165,8 @@ fn a_volumetric_model_encodes_and_renders_end_to_end() {
 }
 
 #[test]
-fn no_shadows_changes_nothing_for_a_model_without_shadows() {
-    // The bundled default model's slots cast no shadows (no `shadow_head`): the flag is accepted
-    // and the renders are the same bytes. (What it leaves out of a model with shadows is
-    // tested in tests/render_fast.rs.)
+fn no_shadows_leaves_the_segmentation_and_only_brightens_the_floor() {
+    // The bundled default model's slots cast shadows (`shadow_head`, read along the light).
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path());
     let codes = dir.path().join("a.codes");
@@ -190,14 +188,29 @@ fn no_shadows_changes_nothing_for_a_model_without_shadows() {
         &["--no-shadows"],
     );
     assert!(o.status.success(), "{o:?}");
+    let mut brighter = 0;
     for v in 0..4 {
-        for ext in ["png", "mask.png"] {
-            let name = format!("view_{v:03}.{ext}");
-            assert_eq!(
-                read(dir.path().join("with").join(&name)),
-                read(dir.path().join("without").join(&name)),
-                "{name}"
-            );
-        }
+        let name = format!("view_{v:03}");
+        assert_eq!(
+            read(dir.path().join("with").join(format!("{name}.mask.png"))),
+            read(dir.path().join("without").join(format!("{name}.mask.png"))),
+            "{name}"
+        );
+        let pixels = |d: &str| {
+            let p = dir.path().join(d).join(format!("{name}.png"));
+            colf::image_io::read_rgb(p.to_str().unwrap()).unwrap().data
+        };
+        let (with, without) = (pixels("with"), pixels("without"));
+        // 8-bit rounding aside, leaving the shadows out never darkens a pixel.
+        assert!(with
+            .iter()
+            .zip(&without)
+            .all(|(a, b)| *b >= *a - 1.5 / 255.0));
+        brighter += with
+            .iter()
+            .zip(&without)
+            .filter(|(a, b)| **b > **a + 4.0 / 255.0)
+            .count();
     }
+    assert!(brighter > 0, "no shadow was left out");
 }
