@@ -40,6 +40,19 @@ fn render(codes: &Path, cams: &Path, out: &Path, extra: &[&str]) -> std::process
         .unwrap()
 }
 
+/// Encodes the scene's view 0 with the default model into `codes`; returns `codes`.
+fn encode(scene: &Path, codes: &Path) -> PathBuf {
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .arg("--camera")
+        .arg(scene.join("transforms.json"))
+        .arg("-o")
+        .arg(codes)
+        .assert()
+        .success();
+    codes.to_path_buf()
+}
+
 fn read(p: PathBuf) -> Vec<u8> {
     std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
@@ -48,15 +61,7 @@ fn read(p: PathBuf) -> Vec<u8> {
 fn adaptive_renders_deterministically_and_a_large_eps_leaves_only_the_background() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path());
-    let codes = dir.path().join("a.codes");
-    bin("colf-encode")
-        .arg(scene.join("view_000.png"))
-        .arg("--camera")
-        .arg(scene.join("transforms.json"))
-        .arg("-o")
-        .arg(&codes)
-        .assert()
-        .success();
+    let codes = encode(&scene, &dir.path().join("a.codes"));
     let cams = scene.join("transforms.json");
     for out in ["a1", "a2"] {
         let o = render(&codes, &cams, &dir.path().join(out), &["--adaptive"]);
@@ -169,15 +174,7 @@ fn no_shadows_leaves_the_segmentation_and_only_brightens_the_floor() {
     // The bundled default model's slots cast shadows (`shadow_head`, read along the light).
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path());
-    let codes = dir.path().join("a.codes");
-    bin("colf-encode")
-        .arg(scene.join("view_000.png"))
-        .arg("--camera")
-        .arg(scene.join("transforms.json"))
-        .arg("-o")
-        .arg(&codes)
-        .assert()
-        .success();
+    let codes = encode(&scene, &dir.path().join("a.codes"));
     let cams = scene.join("transforms.json");
     let o = render(&codes, &cams, &dir.path().join("with"), &[]);
     assert!(o.status.success(), "{o:?}");
