@@ -213,20 +213,17 @@ impl ColfModel {
         };
         let shadow = match shadow {
             Some(sigma) => {
-                // The background's own σ is not used: only foreground slots cast shadows.
+                // Only foreground slots cast shadows: the background's σ is reported as 0.
                 let sigma = sigma.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
-                let background = colors.narrow(2, 0, 1)?;
-                if s > 1 {
-                    let lit = sigma.narrow(2, 1, s - 1)?.sum_keepdim(2)?.neg()?.exp()?;
-                    let shaded = background.broadcast_mul(&lit.unsqueeze(3)?)?;
-                    colors = Tensor::cat(&[&shaded, &colors.narrow(2, 1, s - 1)?], 2)?;
-                }
-                // Report 0 for the background.
                 let zero = sigma.narrow(2, 0, 1)?.zeros_like()?;
-                if s > 1 {
-                    Some(Tensor::cat(&[&zero, &sigma.narrow(2, 1, s - 1)?], 2)?)
-                } else {
+                if s == 1 {
                     Some(zero)
+                } else {
+                    let cast = sigma.narrow(2, 1, s - 1)?;
+                    let lit = cast.sum_keepdim(2)?.neg()?.exp()?;
+                    let shaded = colors.narrow(2, 0, 1)?.broadcast_mul(&lit.unsqueeze(3)?)?;
+                    colors = Tensor::cat(&[&shaded, &colors.narrow(2, 1, s - 1)?], 2)?;
+                    Some(Tensor::cat(&[&zero, &cast], 2)?)
                 }
             }
             None => None,
