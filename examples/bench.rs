@@ -298,6 +298,7 @@ fn measure_train(steps: u64) -> Result<Value> {
         config_overrides: Vec::new(),
         seed: 0,
         checkpoint_every: 0,
+        keep_every: 0,
         eval_every: 0,
         eval_data: None,
         eval_scenes: 0,

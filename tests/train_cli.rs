@@ -63,7 +63,15 @@ fn a_resumed_run_matches_an_uninterrupted_one() {
     let dir = tempfile::tempdir().unwrap();
     let data = data(dir.path());
     let straight = dir.path().join("a.safetensors");
-    train(&data, &straight, 12, &[]);
+    train(&data, &straight, 12, &["--keep-every", "6"]);
+    // --keep-every kept the models of steps 6 and 12; the last is the final model.
+    let kept = |step: u64| dir.path().join(format!("a.step{step}.safetensors"));
+    assert!(colf::model::Colf::load(&kept(6)).is_ok());
+    assert_eq!(
+        std::fs::read(kept(12)).unwrap(),
+        std::fs::read(&straight).unwrap()
+    );
+    assert!(!kept(5).exists());
     let split = dir.path().join("b.safetensors");
     train(&data, &split, 7, &[]);
     train(&data, &split, 12, &["--resume"]);

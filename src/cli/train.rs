@@ -161,6 +161,12 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 500, value_name = "N")]
     pub checkpoint_every: u64,
 
+    /// Also keep the model of every Nth step as OUT with .stepN before its .safetensors
+    /// extension (m.safetensors -> m.step2000.safetensors), to rewind a run that later degrades
+    /// (0: never).
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub keep_every: u64,
+
     /// Held-out data evaluated during training (PSNR, FG-ARI, foreground share...).
     #[arg(long, value_name = "DIR")]
     pub eval_data: Option<std::path::PathBuf>,
@@ -285,6 +291,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         config_overrides: args.config_overrides.clone(),
         seed: args.seed,
         checkpoint_every: args.checkpoint_every,
+        keep_every: args.keep_every,
         eval_every: args.eval_every,
         eval_data: args.eval_data.clone(),
         eval_scenes: args.eval_scenes,

@@ -93,6 +93,10 @@ pub struct TrainOptions {
     pub config_overrides: Vec<String>,
     pub seed: u64,
     pub checkpoint_every: u64,
+    /// Also keep a copy of the model file every this many steps (0: never), named by
+    /// `snapshot_path`, so a run that later degrades can be rewound to its best step.
+    #[serde(default)]
+    pub keep_every: u64,
     /// Evaluate on `eval_data` every this many steps (0: never).
     pub eval_every: u64,
     pub eval_data: Option<PathBuf>,
@@ -109,6 +113,17 @@ impl TrainOptions {
         let mut p = self.out.clone().into_os_string();
         p.push(".ckpt");
         PathBuf::from(p)
+    }
+
+    /// Kept model of `step`: `<out>` with `.step<N>` before its `.safetensors` extension
+    /// (`m.safetensors` → `m.step2000.safetensors`), or appended when it has none.
+    pub fn snapshot_path(&self, step: u64) -> PathBuf {
+        let name = self.out.file_name().unwrap_or_default().to_string_lossy();
+        let kept = match name.strip_suffix(".safetensors") {
+            Some(stem) => format!("{stem}.step{step}.safetensors"),
+            None => format!("{name}.step{step}"),
+        };
+        self.out.with_file_name(kept)
     }
 
     /// JSON-lines log path: `<out>.log.jsonl`.
@@ -434,8 +449,7 @@ impl Trainer {
     /// Saves the model file and the checkpoint (both atomically; the checkpoint holds the model,
     /// the optimizer moments and the step, in one file, so they can never disagree).
     pub fn save(&self) -> Result<()> {
-        let host = checkpoint::to_host(self.colf.parameters())?;
-        let (model_bytes, _) = checkpoint::to_bytes(self.colf.config(), &host);
+        let (model_bytes, host) = self.model_file()?;
         crate::io::write_atomic(&self.opts.out, &model_bytes)?;
         let adam = self.adam.state_tensors("adam/")?;
         let mut tensors: Vec<F32Tensor> = host
@@ -465,6 +479,19 @@ impl Trainer {
             &self.opts.checkpoint_path(),
             &serialize_f32(&tensors, &meta),
         )
+    }
+
+    /// Writes the model file of the current step to `snapshot_path` (atomically).
+    fn keep_snapshot(&self) -> Result<()> {
+        let (model_bytes, _) = self.model_file()?;
+        crate::io::write_atomic(&self.opts.snapshot_path(self.step), &model_bytes)
+    }
+
+    /// The current weights as a model file's bytes, and as host tensors.
+    fn model_file(&self) -> Result<(Vec<u8>, HostParams)> {
+        let host = checkpoint::to_host(self.colf.parameters())?;
+        let (model_bytes, _) = checkpoint::to_bytes(self.colf.config(), &host);
+        Ok((model_bytes, host))
     }
 
     /// Evaluates on the evaluation set (if any) with the current weights.
@@ -503,6 +530,9 @@ impl Trainer {
             }
             if every(self.opts.checkpoint_every) {
                 self.save()?;
+            }
+            if every(self.opts.keep_every) {
+                self.keep_snapshot()?;
             }
         }
         self.save()
@@ -708,6 +738,22 @@ fn ray_metrics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn snapshots_are_named_by_their_step() {
+        let opts = |out: &str| TrainOptions {
+            out: out.into(),
+            ..TrainOptions::default()
+        };
+        assert_eq!(
+            opts("runs/m.safetensors").snapshot_path(2000),
+            PathBuf::from("runs/m.step2000.safetensors")
+        );
+        assert_eq!(
+            opts("runs/model").snapshot_path(7),
+            PathBuf::from("runs/model.step7")
+        );
+    }
 
     #[test]
     fn learning_rate_warms_up_then_decays_by_a_half_cosine() {
