@@ -1,5 +1,5 @@
 use clap::Parser;
-use colf::cli::train::{run_training, TrainArgs, TrainCommand};
+use colf::cli::train::{run_average, run_training, TrainArgs, TrainCommand};
 
 fn main() {
     let args = TrainArgs::parse();
@@ -17,6 +17,7 @@ fn main() {
         Some(TrainCommand::Plot(plot)) => {
             colf::train::plot::plot_file(&plot.log, &plot.output, plot.width, plot.height)
         }
+        Some(TrainCommand::Average(average)) => run_average(average),
         None => run_training(&args.run),
     })
 }

@@ -72,6 +72,38 @@ fn a_resumed_run_matches_an_uninterrupted_one() {
         std::fs::read(&straight).unwrap()
     );
     assert!(!kept(5).exists());
+    // `colf-train average` of the two kept models is a model; a model and a file that is not
+    // one give one error line naming the file, exit 1, and no output.
+    let mean = dir.path().join("mean.safetensors");
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("average")
+        .args([kept(6), kept(12)])
+        .arg("-o")
+        .arg(&mean)
+        .assert()
+        .success();
+    assert!(colf::model::Colf::load(&mean).is_ok());
+    let junk = dir.path().join("junk.safetensors");
+    std::fs::write(&junk, b"not a model").unwrap();
+    let bad = dir.path().join("bad.safetensors");
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("average")
+        .args([kept(6), junk])
+        .arg("-o")
+        .arg(&bad)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.starts_with("colf-train: error: ")
+            && err.contains("junk.safetensors")
+            && err.lines().count() == 1,
+        "{err}"
+    );
+    assert!(!bad.exists());
     let split = dir.path().join("b.safetensors");
     train(&data, &split, 7, &[]);
     train(&data, &split, 12, &["--resume"]);

@@ -199,6 +199,51 @@ pub enum TrainCommand {
     Init(InitArgs),
     /// Draw loss and PSNR curves from a training log (OUT.log.jsonl) as a PNG.
     Plot(PlotArgs),
+    /// Average the weights of several models of one run (e.g. kept snapshots) into one.
+    Average(AverageArgs),
+}
+
+/// `colf-train average`.
+#[derive(Args, Debug)]
+#[command(
+    about = "Average the weights of several models of one run into one model",
+    long_about = "Write the element-wise mean of the weights of MODEL... to OUT (atomically; `-` \
+for stdout, refused on a terminal): a cheap ensemble of, e.g., the snapshots that --keep-every \
+kept along the end of a learning-rate decay, at the cost of one model. The models must share \
+their config and tensors (runs continued from one another do; independently initialised models \
+do not average into anything useful). The new model's identity is printed on stderr."
+)]
+pub struct AverageArgs {
+    /// The models to average.
+    #[arg(value_name = "MODEL", required = true)]
+    pub models: Vec<std::path::PathBuf>,
+
+    /// Where to write the averaged model (`-`: stdout).
+    #[arg(short, long, value_name = "MODEL")]
+    pub output: String,
+}
+
+/// Runs `colf-train average`: loads every model, averages, writes.
+pub fn run_average(args: &AverageArgs) -> anyhow::Result<()> {
+    let models = args
+        .models
+        .iter()
+        .map(|path| crate::model::Colf::load(path))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let names: Vec<String> = args
+        .models
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect();
+    let named: Vec<(&str, &crate::model::Colf)> =
+        names.iter().map(String::as_str).zip(&models).collect();
+    let (bytes, identity) = crate::train::average::average(&named)?;
+    crate::io::write_output(&args.output, &bytes, true)?;
+    eprintln!(
+        "colf-train: the mean of {} models, identity {identity}",
+        models.len()
+    );
+    Ok(())
 }
 
 /// `colf-train plot`.
