@@ -80,10 +80,13 @@ demo: build
 # to 2e-5. Stage 4 (from stage 3, 6,000 steps, the 2,000 scenes): rays drawn uniformly, learning
 # rate 5e-5, half cosine from step 3,000 to 1e-5. Stage 5 (from stage 4, 10,000 steps, the
 # 2,000 scenes): adds slots that cast shadows, read along the light ([30, 55] degrees);
-# learning rate 1e-4, half cosine from step 6,000 to 1e-5. Re-running `make model` resumes from the
+# learning rate 1e-4, half cosine from step 6,000 to 1e-5. Stage 6 (from stage 5, 12,000 steps,
+# the 2,000 scenes): 4 views a scene (the input view and 3 novel ones) of 256 rays each, learning
+# rate 5e-5, half cosine from step 4,000 to 5e-6. Re-running `make model` resumes from the
 # checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the next has
 # started); the result is evaluated on the held-out scenes ($(MODEL_RUN)/eval.json, and with 50
-# refinement steps eval-refined.json), plotted ($(MODEL_RUN)/training.png) and copied to
+# refinement steps eval-refined.json, and with 12 slots, 4 tries and 50 refinement steps
+# eval-best.json), plotted ($(MODEL_RUN)/training.png) and copied to
 # models/default.safetensors.
 MODEL_RUN ?= out/model
 MODEL_COMMON := --eval-data $(MODEL_RUN)/data/test --checkpoint-every 250 --mask-weight 0.1
@@ -118,17 +121,25 @@ model: build
 	  --object-fraction 0 --steps 6000 --lr 5e-5 --warmup 100 --decay-from 3000 \
 	  --final-lr 1e-5 --seed 12 \
 	  $(call resume_or_init,$(MODEL_RUN)/stage4.safetensors,$(MODEL_RUN)/stage3.safetensors)
-	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	test -f $(MODEL_RUN)/model.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/stage5.safetensors \
 	  --object-fraction 0 --steps 10000 --lr 1e-4 --warmup 100 --decay-from 6000 \
 	  --final-lr 1e-5 --seed 23 \
-	  $(if $(wildcard $(MODEL_RUN)/model.safetensors.ckpt),--resume,--init \
+	  $(if $(wildcard $(MODEL_RUN)/stage5.safetensors.ckpt),--resume,--init \
 	  $(MODEL_RUN)/stage4.safetensors --set shadow_head=true --set 'shadow_light=[30,55]')
+	$(RELEASE)/colf-train $(STAGE34_FLAGS) --out $(MODEL_RUN)/model.safetensors \
+	  --object-fraction 0 --views 4 --rays 256 --steps 12000 --lr 5e-5 --warmup 100 \
+	  --decay-from 4000 --final-lr 5e-6 --seed 24 \
+	  $(call resume_or_init,$(MODEL_RUN)/model.safetensors,$(MODEL_RUN)/stage5.safetensors)
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/model.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json
 	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
 	  --refine 50 > $(MODEL_RUN)/eval-refined.json.tmp \
 	  && mv $(MODEL_RUN)/eval-refined.json.tmp $(MODEL_RUN)/eval-refined.json
+	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
+	  --slots 12 --refine 50 --tries 4 > $(MODEL_RUN)/eval-best.json.tmp \
+	  && mv $(MODEL_RUN)/eval-best.json.tmp $(MODEL_RUN)/eval-best.json
 	cp $(MODEL_RUN)/model.safetensors models/default.safetensors
 
 install: build
