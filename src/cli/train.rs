@@ -209,9 +209,9 @@ pub enum TrainCommand {
     about = "Average the weights of several models of one run into one model",
     long_about = "Write the element-wise mean of the weights of MODEL... to OUT (atomically; `-` \
 for stdout, refused on a terminal): a cheap ensemble of, e.g., the snapshots that --keep-every \
-kept along the end of a learning-rate decay, at the cost of one model. The models must share \
-their config and tensors (runs continued from one another do; independently initialised models \
-do not average into anything useful). The new model's identity is printed on stderr."
+kept while the learning rate was still high, at the cost of one model. The models must share \
+their config (runs continued from one another do; independently initialised models do not \
+average into anything useful). The new model's identity is printed on stderr."
 )]
 pub struct AverageArgs {
     /// The models to average.
