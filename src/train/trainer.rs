@@ -450,7 +450,13 @@ impl Trainer {
     /// the optimizer moments and the step, in one file, so they can never disagree).
     pub fn save(&self) -> Result<()> {
         let (model_bytes, host) = self.model_file()?;
-        crate::io::write_atomic(&self.opts.out, &model_bytes)?;
+        self.write_model_and_checkpoint(&model_bytes, &host)
+    }
+
+    /// `save` with the model file already made (`model_file`), so a step that is also kept
+    /// serialises the weights once.
+    fn write_model_and_checkpoint(&self, model_bytes: &[u8], host: &HostParams) -> Result<()> {
+        crate::io::write_atomic(&self.opts.out, model_bytes)?;
         let adam = self.adam.state_tensors("adam/")?;
         let mut tensors: Vec<F32Tensor> = host
             .iter()
@@ -479,12 +485,6 @@ impl Trainer {
             &self.opts.checkpoint_path(),
             &serialize_f32(&tensors, &meta),
         )
-    }
-
-    /// Writes the model file of the current step to `snapshot_path` (atomically).
-    fn keep_snapshot(&self) -> Result<()> {
-        let (model_bytes, _) = self.model_file()?;
-        crate::io::write_atomic(&self.opts.snapshot_path(self.step), &model_bytes)
     }
 
     /// The current weights as a model file's bytes, and as host tensors.
@@ -528,11 +528,18 @@ impl Trainer {
                     on_log(&serde_json::json!({"step": self.step, "eval": scores}));
                 }
             }
-            if every(self.opts.checkpoint_every) {
-                self.save()?;
-            }
-            if every(self.opts.keep_every) {
-                self.keep_snapshot()?;
+            let (checkpoint, keep) = (
+                every(self.opts.checkpoint_every),
+                every(self.opts.keep_every),
+            );
+            if checkpoint || keep {
+                let (model_bytes, host) = self.model_file()?;
+                if checkpoint {
+                    self.write_model_and_checkpoint(&model_bytes, &host)?;
+                }
+                if keep {
+                    crate::io::write_atomic(&self.opts.snapshot_path(self.step), &model_bytes)?;
+                }
             }
         }
         self.save()
