@@ -1,5 +1,5 @@
 use clap::Parser;
-use colf::cli::train::{run_average, run_training, TrainArgs, TrainCommand};
+use colf::cli::train::{run_average, run_configure, run_training, TrainArgs, TrainCommand};
 
 fn main() {
     let args = TrainArgs::parse();
@@ -18,6 +18,7 @@ fn main() {
             colf::train::plot::plot_file(&plot.log, &plot.output, plot.width, plot.height)
         }
         Some(TrainCommand::Average(average)) => run_average(average),
+        Some(TrainCommand::Configure(configure)) => run_configure(configure),
         None => run_training(&args.run),
     })
 }

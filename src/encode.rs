@@ -7,12 +7,7 @@ use crate::model::Colf;
 use crate::refine::{input_view_mse, refine_latents_on_views, RefineOptions, RefineReport};
 use anyhow::{bail, Result};
 
-/// Largest slot count `colf-encode` accepts: slot attention runs with any K, but beyond this a
-/// typo (`--slots 100000`) would only burn memory.
-pub const MAX_ENCODE_SLOTS: usize = 1024;
-
-/// Largest `--tries`: each try is one encoder pass and one render of the input view.
-pub const MAX_ENCODE_TRIES: usize = 100;
+pub use crate::model::config::{MAX_ENCODE_SLOTS, MAX_ENCODE_TRIES};
 
 /// The latents and frames of `slots`, in order.
 fn latents_and_frames(slots: &[Slot]) -> (Vec<Vec<f32>>, Vec<glam::DMat4>) {

@@ -40,6 +40,7 @@ fn tiny() -> Config {
         shadow_head: false,
         shadow_light: None,
         volumetric: None,
+        inference: None,
     }
 }
 

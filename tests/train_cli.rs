@@ -257,3 +257,90 @@ fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
         .keys()
         .all(|k| !k.starts_with("hypernet_bg.")));
 }
+
+#[test]
+fn configure_keeps_the_weights_and_sets_the_default_encoding() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let start = dir.path().join("start.safetensors");
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["init", "--seed", "3", "-o"])
+        .arg(&start)
+        .assert()
+        .success();
+    let configured = dir.path().join("configured.safetensors");
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("configure")
+        .arg(&start)
+        .args([
+            "--set",
+            r#"inference={"slots":3,"tries":2,"refine":1}"#,
+            "-o",
+        ])
+        .arg(&configured)
+        .assert()
+        .success();
+    let (before, after) = (
+        colf::model::Colf::load(&start).unwrap(),
+        colf::model::Colf::load(&configured).unwrap(),
+    );
+    assert_eq!(before.parameters().len(), after.parameters().len());
+    for (name, tensor) in before.parameters() {
+        let same = after.parameters()[name]
+            .eq(tensor)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .min(0)
+            .unwrap()
+            .to_scalar::<u8>()
+            .unwrap();
+        assert_eq!(same, 1, "{name} changed");
+    }
+    assert_ne!(before.identity().unwrap(), after.identity().unwrap());
+    // colf-eval encodes as the model says unless told otherwise; --fast is one pass.
+    let eval = |extra: &[&str]| -> serde_json::Value {
+        let out = Command::cargo_bin("colf-eval")
+            .unwrap()
+            .arg("--data")
+            .arg(&data)
+            .arg("--model")
+            .arg(&configured)
+            .args(["--scenes", "1", "-q"])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{out:?}");
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let settings = |doc: &serde_json::Value| {
+        (
+            doc["slots"].as_u64().unwrap(),
+            doc["tries"].as_u64().unwrap(),
+            doc["refine_steps"].as_u64().unwrap(),
+        )
+    };
+    assert_eq!(settings(&eval(&[])), (3, 2, 1));
+    assert_eq!(settings(&eval(&["--fast"])), (7, 1, 0));
+    assert_eq!(
+        settings(&eval(&["--refine", "0", "--slots", "4"])),
+        (4, 2, 0)
+    );
+    // A setting that changes a tensor is one error line naming the file, and no output.
+    let wider = dir.path().join("wider.safetensors");
+    let assert = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("configure")
+        .arg(&start)
+        .args(["--set", "lfn_features=16", "-o"])
+        .arg(&wider)
+        .assert()
+        .code(1);
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("start.safetensors"), "{stderr}");
+    assert!(stderr.contains("tensors"), "{stderr}");
+    assert!(!wider.exists());
+}

@@ -104,14 +104,15 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
             .filter(|_| args.image != "-")
             .unwrap_or_else(|| "stdin".into())
     });
+    let encoding = args.fit.encoding(model.config(), args.slots);
     let opts = EncodeOptions {
-        num_slots: args.slots.unwrap_or(model.config().default_slots),
+        num_slots: encoding.slots,
         prune_mass: args.prune,
         seed: args.seed,
         camera,
         source,
-        tries: args.fit.tries,
-        refine: args.fit.options(args.seed),
+        tries: encoding.tries,
+        refine: args.fit.options(encoding.refine, args.seed),
     };
     let codes = encode_image(&model, &image, &opts)?;
     codes.write(&args.output)

@@ -174,7 +174,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         bail!("{}: no scenes found", data.display());
     }
     let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
-    let slots = args.slots.unwrap_or(model.config().default_slots);
+    let encoding = args.fit.encoding(model.config(), args.slots);
     if let Some(dir) = &args.renders {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("{}: cannot create the folder", dir.display()))?;
@@ -183,10 +183,10 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let started = std::time::Instant::now();
     let mut render_error = None;
     let options = crate::evaluate::EvalOptions {
-        num_slots: slots,
+        num_slots: encoding.slots,
         seed: args.seed,
-        tries: args.fit.tries,
-        refine: args.fit.options(args.seed),
+        tries: encoding.tries,
+        refine: args.fit.options(encoding.refine, args.seed),
     };
     let (scores, rows) = crate::evaluate::evaluate(
         &model,
@@ -226,9 +226,9 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let mut doc = serde_json::to_value(&scores)?;
     doc["data"] = serde_json::json!(data.display().to_string());
     doc["model"] = serde_json::json!(model.identity()?);
-    doc["slots"] = serde_json::json!(slots);
-    doc["tries"] = serde_json::json!(args.fit.tries);
-    doc["refine_steps"] = serde_json::json!(args.fit.refine);
+    doc["slots"] = serde_json::json!(encoding.slots);
+    doc["tries"] = serde_json::json!(encoding.tries);
+    doc["refine_steps"] = serde_json::json!(encoding.refine);
     if options.refine.steps > 0 {
         doc["refine"] = serde_json::to_value(options.refine)?;
     }

@@ -42,16 +42,24 @@ pub fn commands() -> Vec<clap::Command> {
 }
 
 /// How an encoding is fitted to its input image, shared by `colf-encode` and `colf-eval --data`.
+/// Unset flags take the model's measured defaults (its config's `inference`, see
+/// `colf-train configure`), or one encoder pass for a model without them.
 #[derive(clap::Args, Debug, Clone)]
 pub struct FitArgs {
-    /// Encode N times (slot noise seeds S, S+1, ...) and keep the encoding that reconstructs the
-    /// input image best.
-    #[arg(long, default_value_t = 1, value_name = "N")]
-    pub tries: usize,
+    /// One encoder pass: the model's training slot count, one try, no refinement (the fastest
+    /// encoding; --slots still chooses K).
+    #[arg(long, conflicts_with_all = ["tries", "refine"])]
+    pub fast: bool,
 
-    /// Refine the slot latents with N Adam steps on the input image (0: the encoder's latents).
-    #[arg(long, default_value_t = 0, value_name = "N")]
-    pub refine: usize,
+    /// Encode N times (slot noise seeds S, S+1, ...) and keep the encoding that reconstructs the
+    /// input image best (default: the model's).
+    #[arg(long, value_name = "N")]
+    pub tries: Option<usize>,
+
+    /// Refine the slot latents with N Adam steps on the input image (0: the encoder's latents;
+    /// default: the model's).
+    #[arg(long, value_name = "N")]
+    pub refine: Option<usize>,
 
     /// Learning rate of the refinement.
     #[arg(long, default_value_t = crate::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true)]
@@ -72,15 +80,90 @@ pub struct FitArgs {
 }
 
 impl FitArgs {
-    /// The refinement options; the pixel subsets are drawn from `seed`.
-    pub fn options(&self, seed: u64) -> crate::refine::RefineOptions {
+    /// The encoding to run with `model_config`: `slots` (the stage's --slots) and these flags
+    /// where given, else `--fast`'s one pass, else the model's defaults.
+    pub fn encoding(
+        &self,
+        model_config: &crate::model::Config,
+        slots: Option<usize>,
+    ) -> crate::model::config::InferenceConfig {
+        let base = if self.fast {
+            crate::model::config::InferenceConfig::one_pass(model_config.default_slots)
+        } else {
+            model_config.default_inference()
+        };
+        crate::model::config::InferenceConfig {
+            slots: slots.unwrap_or(base.slots),
+            tries: self.tries.unwrap_or(base.tries),
+            refine: self.refine.unwrap_or(base.refine),
+        }
+    }
+
+    /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
+    pub fn options(&self, steps: usize, seed: u64) -> crate::refine::RefineOptions {
         crate::refine::RefineOptions {
-            steps: self.refine,
+            steps,
             lr: self.refine_lr,
             rays: self.refine_rays,
             anchor_weight: self.refine_anchor,
             frame_lr: self.refine_frame_lr,
             seed,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::encode::EncodeArgs;
+    use crate::model::config::InferenceConfig;
+    use crate::model::Config;
+    use clap::Parser;
+
+    fn encoding(cfg: &Config, flags: &[&str]) -> InferenceConfig {
+        let args = EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
+        args.fit.encoding(cfg, args.slots)
+    }
+
+    #[test]
+    fn unset_flags_take_the_models_encoding_and_fast_is_one_pass() {
+        let plain = Config::small();
+        let measured = InferenceConfig {
+            slots: 12,
+            tries: 4,
+            refine: 50,
+        };
+        let tuned = Config {
+            inference: Some(measured),
+            ..Config::small()
+        };
+        assert_eq!(encoding(&plain, &[]), InferenceConfig::one_pass(7));
+        assert_eq!(encoding(&tuned, &[]), measured);
+        assert_eq!(encoding(&tuned, &["--fast"]), InferenceConfig::one_pass(7));
+        assert_eq!(
+            encoding(&tuned, &["--fast", "--slots", "9"]),
+            InferenceConfig::one_pass(9)
+        );
+        assert_eq!(
+            encoding(&tuned, &["--refine", "0", "--slots", "8"]),
+            InferenceConfig {
+                slots: 8,
+                tries: 4,
+                refine: 0
+            }
+        );
+        assert_eq!(
+            encoding(&plain, &["--tries", "3"]),
+            InferenceConfig {
+                slots: 7,
+                tries: 3,
+                refine: 0
+            }
+        );
+        // --fast with --tries or --refine is a usage error.
+        for flags in [["--fast", "--tries", "2"], ["--fast", "--refine", "2"]] {
+            let err = EncodeArgs::try_parse_from([&["colf-encode", "x.png"], &flags[..]].concat())
+                .unwrap_err();
+            assert_eq!(err.exit_code(), 2);
         }
     }
 }

@@ -201,6 +201,42 @@ pub enum TrainCommand {
     Plot(PlotArgs),
     /// Average the weights of several models of one run (e.g. kept snapshots) into one.
     Average(AverageArgs),
+    /// Change settings of a model's config that keep its weights (e.g. its default encoding).
+    Configure(ConfigureArgs),
+}
+
+/// `colf-train configure`.
+#[derive(Args, Debug)]
+#[command(
+    about = "Change settings of a model's config that keep its weights",
+    long_about = "Write MODEL to OUT (atomically; `-` for stdout, refused on a terminal) with config settings changed by --set KEY=VALUE (the value is JSON; keys as in docs/model.md). Only settings that keep every tensor's name and shape are accepted, so the weights are copied unchanged; the config, and so the identity, change. The main use is `inference`, the encoding colf-encode and colf-eval use with this model when their flags do not say, e.g. --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' (--set inference=null removes it). The new identity is printed on stderr.",
+    after_help = "Examples:\n  colf-train configure stage6.safetensors --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' -o model.safetensors"
+)]
+pub struct ConfigureArgs {
+    /// The model to change.
+    #[arg(value_name = "MODEL")]
+    pub model: std::path::PathBuf,
+
+    /// A config setting to change, KEY=VALUE (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE", required = true)]
+    pub config_overrides: Vec<String>,
+
+    /// Where to write the model (`-`: stdout).
+    #[arg(short, long, value_name = "MODEL")]
+    pub output: String,
+}
+
+/// Runs `colf-train configure`.
+pub fn run_configure(args: &ConfigureArgs) -> anyhow::Result<()> {
+    let model = crate::model::Colf::load(&args.model)?;
+    let name = args.model.display().to_string();
+    let configured = model
+        .configured(&args.config_overrides)
+        .map_err(|e| anyhow::anyhow!("{name}: {e:#}"))?;
+    let (bytes, identity) = configured.to_bytes()?;
+    crate::io::write_output(&args.output, &bytes, true)?;
+    eprintln!("colf-train: {name} configured, identity {identity}");
+    Ok(())
 }
 
 /// `colf-train average`.

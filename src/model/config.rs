@@ -115,6 +115,45 @@ pub struct Config {
     /// identities of light-field models are unchanged.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub volumetric: Option<VolumetricConfig>,
+    /// How `colf-encode` and `colf-eval` encode an image with this model when their flags do
+    /// not say (`--fast` and the flags still choose): settings measured for this model, written
+    /// by `colf-train configure`. Absent = one encoder pass with `default_slots`. Not written
+    /// when absent, so older files and their identities are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inference: Option<InferenceConfig>,
+}
+
+/// The encoding a model is used with by default (see `encode.rs`): more slots than it was
+/// trained with, the best of several slot-noise seeds, then test-time refinement of the latents
+/// on the input image.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InferenceConfig {
+    /// Foreground slots K.
+    pub slots: usize,
+    /// Encodings (slot-noise seeds) tried; the one that reconstructs the input best is kept.
+    pub tries: usize,
+    /// Refinement steps on the input image (0: the encoder's latents).
+    pub refine: usize,
+}
+
+/// Largest slot count an encoding accepts: slot attention runs with any K, but beyond this a
+/// typo (`--slots 100000`) would only burn memory.
+pub const MAX_ENCODE_SLOTS: usize = 1024;
+/// Largest number of tries: each try is one encoder pass and one render of the input view.
+pub const MAX_ENCODE_TRIES: usize = 100;
+/// Largest `inference.refine` a config may ask for (a typo would cost every encode).
+const MAX_INFERENCE_REFINE: usize = 100_000;
+
+impl InferenceConfig {
+    /// One encoder pass with `slots` slots.
+    pub fn one_pass(slots: usize) -> InferenceConfig {
+        InferenceConfig {
+            slots,
+            tries: 1,
+            refine: 0,
+        }
+    }
 }
 
 /// Sizes of the volumetric (uORF-style) baseline decoder; see `volumetric.rs`.
@@ -216,6 +255,7 @@ impl Config {
             shadow_head: false,
             shadow_light: None,
             volumetric: None,
+            inference: None,
         }
     }
 
@@ -253,6 +293,7 @@ impl Config {
             shadow_head: false,
             shadow_light: None,
             volumetric: None,
+            inference: None,
         }
     }
 
@@ -279,6 +320,13 @@ impl Config {
     /// True when slots are decoded by the volumetric baseline instead of light fields.
     pub fn is_volumetric(&self) -> bool {
         self.volumetric.is_some()
+    }
+
+    /// The encoding used when the caller does not choose: `inference` if the model has it, else
+    /// one pass with `default_slots`.
+    pub fn default_inference(&self) -> InferenceConfig {
+        self.inference
+            .unwrap_or(InferenceConfig::one_pass(self.default_slots))
     }
 
     /// Applies `key=value` overrides (the value is JSON, or else a bare string) to this config,
@@ -382,6 +430,17 @@ impl Config {
             }
             v.validate()?;
         }
+        if let Some(inference) = &self.inference {
+            if !(1..=MAX_ENCODE_SLOTS).contains(&inference.slots)
+                || !(1..=MAX_ENCODE_TRIES).contains(&inference.tries)
+                || inference.refine > MAX_INFERENCE_REFINE
+            {
+                bail!("model config: `inference` needs 1 ≤ slots ≤ {MAX_ENCODE_SLOTS}, 1 ≤ tries ≤ {MAX_ENCODE_TRIES} and refine ≤ {MAX_INFERENCE_REFINE}");
+            }
+            if self.volumetric.is_some() && inference.refine > 0 {
+                bail!("model config: `inference.refine` applies to light-field models, not the volumetric baseline");
+            }
+        }
         Ok(())
     }
 
@@ -433,6 +492,49 @@ mod tests {
             .to_json()
             .replace("\"samples\"", "\"mystery\":1,\"samples\"");
         assert!(Config::from_json(&json).is_err());
+    }
+
+    #[test]
+    fn inference_defaults_are_optional_validated_and_set_by_override() {
+        let small = Config::small();
+        assert!(
+            !small.to_json().contains("inference"),
+            "older identities unchanged"
+        );
+        assert_eq!(small.default_inference(), InferenceConfig::one_pass(7));
+        let cfg = small
+            .with_overrides(&[r#"inference={"slots":12,"tries":4,"refine":50}"#.into()])
+            .unwrap();
+        let measured = InferenceConfig {
+            slots: 12,
+            tries: 4,
+            refine: 50,
+        };
+        assert_eq!(cfg.default_inference(), measured);
+        assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
+        // `null` removes them again.
+        assert_eq!(
+            cfg.with_overrides(&["inference=null".into()]).unwrap(),
+            small
+        );
+        for bad in [
+            r#"inference={"slots":0,"tries":1,"refine":0}"#,
+            r#"inference={"slots":7,"tries":0,"refine":0}"#,
+            r#"inference={"slots":7,"tries":101,"refine":0}"#,
+            r#"inference={"slots":7,"tries":1,"refine":1000000}"#,
+            r#"inference={"slots":7,"tries":1}"#,
+            r#"inference={"slots":7,"tries":1,"refine":0,"lr":1}"#,
+        ] {
+            assert!(small.with_overrides(&[bad.into()]).is_err(), "{bad}");
+        }
+        // The volumetric baseline cannot be refined.
+        let volumetric = Config::volumetric();
+        assert!(volumetric
+            .with_overrides(&[r#"inference={"slots":7,"tries":2,"refine":5}"#.into()])
+            .is_err());
+        assert!(volumetric
+            .with_overrides(&[r#"inference={"slots":7,"tries":2,"refine":0}"#.into()])
+            .is_ok());
     }
 
     #[test]

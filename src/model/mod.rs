@@ -368,6 +368,17 @@ impl Colf {
         Colf::build(cfg.clone(), tensors, None, name)
     }
 
+    /// The same weights under a config changed by `overrides` (`KEY=VALUE`, as
+    /// [`Config::with_overrides`]); refused unless every tensor keeps its name and shape.
+    pub fn configured(&self, overrides: &[String]) -> Result<Colf> {
+        let cfg = self.config().with_overrides(overrides)?;
+        // `build` checks the tensors against the model the config describes: any missing,
+        // unexpected or reshaped tensor is refused.
+        Colf::build(cfg, self.params.clone(), None, "the new config").context(
+            "the settings change the model's tensors (grow and train with --init and --set instead)",
+        )
+    }
+
     /// The same model with parameter `name` replaced by `value` (same shape), e.g. to set a
     /// shadow head's bias in a test; the identity is recomputed.
     pub fn with_tensor(&self, name: &str, value: Tensor) -> Result<Colf> {
