@@ -47,7 +47,11 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
     encode(&scene, &b);
     assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
     let codes = Codes::read(a.to_str().unwrap()).unwrap();
-    assert_eq!(codes.slots.len(), 7, "the small model's default K");
+    // The bundled model's default encoding: its `inference` slot count, refined, best of tries.
+    let default = colf::model::Colf::load_resolved(None).unwrap();
+    let inference = default.config().default_inference();
+    assert!(inference.refine > 0 && inference.tries > 1, "{inference:?}");
+    assert_eq!(codes.slots.len(), inference.slots);
     // Every slot's frame has the input camera's rotation (the default model's attention frames
     // move only the origin, to where the slot attends).
     let cams =
@@ -96,19 +100,26 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
         )
         .unwrap();
         assert_eq!((w, h), (64, 64));
-        assert!(labels.iter().all(|&l| l <= 7), "mask labels beyond K");
+        assert!(
+            labels.iter().all(|&l| l as usize <= codes.slots.len()),
+            "mask labels beyond K"
+        );
     }
     let exr = dir.path().join("r1/view_000.exr");
     let channels = colf::render_output::read_exr_channels(&exr).unwrap();
     assert!(channels["R"].iter().all(|v| v.is_finite()));
-    assert!(channels.contains_key("slot6.order") && !channels.contains_key("slot7.order"));
+    let last = codes.slots.len() - 1;
+    assert!(
+        channels.contains_key(&format!("slot{last}.order"))
+            && !channels.contains_key(&format!("slot{}.order", last + 1))
+    );
     let python = std::process::Command::new("python3")
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/python/exr_check.py"
         ))
         .arg(&exr)
-        .args(["7", "64", "64"])
+        .args([&codes.slots.len().to_string(), "64", "64"])
         .output()
         .expect("python3");
     assert!(
@@ -297,8 +308,10 @@ fn refined_encoding_fits_the_input_view_and_is_deterministic() {
             .output()
             .unwrap()
     };
+    // The model's default slots and tries, without refinement.
     let plain = dir.path().join("plain.codes");
-    encode(&scene, &plain);
+    let run = encode_refined(&plain, &["--refine", "0"]);
+    assert!(run.status.success(), "{run:?}");
     let (a, b) = (dir.path().join("a.codes"), dir.path().join("b.codes"));
     for out in [&a, &b] {
         let run = encode_refined(out, &["--refine", "10"]);

@@ -21,15 +21,20 @@ generator: the same input, model, options and --seed give byte-identical output.
 --refine N then takes N Adam steps on the slot latents and the slot frames' origins (the \
 model's weights fixed; --refine-frame-lr 0 keeps the frames) to lower the colour error of IMAGE \
 as seen by its camera: the encoder's latents are a one-pass guess for any scene, and a few steps \
-fit this one. Only IMAGE is used, so novel views stay predictions; see the README, \
-\"Refinement\", for the measured gain in novel views and the time per image. Too many steps or too \
-high a --refine-lr fit the input view at the expense of novel views. --tries N encodes N times \
-(slot noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is \
-closest to it, before any refinement.\n\n\
+fit this one. Only IMAGE is used, so novel views stay predictions. Too many steps or too high a \
+--refine-lr fit the input view at the expense of novel views. --tries N encodes N times (slot \
+noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is closest to \
+it, before any refinement.\n\n\
+Unset, --slots, --tries and --refine take the model's default encoding (its config's \
+`inference`, written by colf-train configure; a model without one is encoded in one pass with \
+its training slot count). The bundled model's is 12 slots, 4 tries and 50 refinement steps: the \
+most accurate encoding measured (README, \"Refinement\": about 6 s an image on one core). \
+--fast is the one-pass encoding (the model's training slot count, about 0.1 s an image), for \
+when speed matters more.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \
-colf-encode view_000.png --camera transforms.json --refine 50 -o scene.codes"
+colf-encode view_000.png --camera transforms.json --fast -o scene.codes"
 )]
 pub struct EncodeArgs {
     /// Input image, PNG (`-`: stdin).

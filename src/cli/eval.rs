@@ -35,15 +35,17 @@ encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-
 on view 0; PSNR, SSIM and NV-ARI (FG-ARI of the novel views) are averaged over the other views; \
 then each score is averaged over the scenes where it is defined. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
-slots) and slots_used (foreground slots that win a pixel of view 0). --refine N refines the \
-latents on view 0 before rendering, as colf-encode --refine does (view 0 only: the novel views \
-stay unseen); the JSON records refine_steps and, when refining, the refine settings. The JSON object goes to \
-stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
+slots) and slots_used (foreground slots that win a pixel of view 0). View 0 is encoded as \
+colf-encode would: with the model's default encoding (its slots, tries and refinement steps on \
+view 0, see colf-encode(1); view 0 only, so the novel views stay unseen), or as --slots, \
+--tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps and, \
+when refining, the refine settings. The JSON object goes to stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
 masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
 colf-eval masks renders/frame_0000.mask.png data/scene_00000/view_001.mask.png\n  \
 colf-eval images a.png b.png | jq .psnr\n  \
-colf-eval --data data/test --scenes 100 > metrics.json",
+colf-eval --data data/test --scenes 100 > metrics.json\n  \
+colf-eval --data data/test --fast > one-pass.json",
     args_conflicts_with_subcommands = true,
     arg_required_else_help = true
 )]
