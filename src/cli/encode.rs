@@ -28,7 +28,7 @@ it, before any refinement.\n\n\
 Unset, --slots, --tries and --refine take the model's default encoding (its config's \
 `inference`, written by colf-train configure; a model without one is encoded in one pass with \
 its training slot count). The bundled model's is 12 slots, 4 tries and 50 refinement steps: the \
-most accurate encoding measured (README, \"Refinement\": about 6 s an image on one core). \
+most accurate encoding measured (README, \"Refinement\": about 4 s of CPU an image at 64²). \
 --fast is the one-pass encoding (the model's training slot count, about 0.1 s an image), for \
 when speed matters more.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
