@@ -1,7 +1,7 @@
 //! `make tradeoff`: the speed/accuracy curve of rendering shortcuts, on held-out scenes.
 //!
 //! For each of `--scenes` held-out synthetic scenes (`colf-synth --split test --size 128`),
-//! view 0 is encoded (`colf-encode --camera`, optionally `--prune P`) and views 1–3 are rendered:
+//! view 0 is encoded in one pass (`colf-encode --fast --camera`, optionally `--prune P`) and views 1–3 are rendered:
 //! - exactly (the reference: no pruning, full resolution, no `--adaptive`);
 //! - adaptively with each ε of `--eps` (see `colf::render_adaptive`), after each `--prune`;
 //! - exactly at half resolution, upsampled ×2 (bilinear) to compare at full resolution.
@@ -365,7 +365,7 @@ fn main() -> Result<()> {
     let mut md = String::new();
     md.push_str(&format!(
         "Model `{}` (identity `{identity}`), {} held-out clevr567 scenes (`colf-synth --split test \
---seed 0 --size {}`), view 0 encoded with K = {} (`colf-encode --camera`), views 1–3 rendered: \
+--seed 0 --size {}`), view 0 encoded in one pass with K = {} (`colf-encode --fast --camera`), views 1–3 rendered: \
 {frames} frames. Exact render: {:.1} ms per frame, PSNR {:.2} dB against ground truth. Times are \
 medians of {} runs per frame on the 2-core development machine (other jobs make times noisy: compare \
 rows of one table, not tables). Mean slots kept: {}.\n\n",
