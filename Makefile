@@ -48,7 +48,8 @@ man:
 	@echo "man pages: $(words $(wildcard man/*.1)) rendered without warnings"
 
 # Synthesise a held-out scene, encode its first view (the model's default encoding: 12 slots, best of
-# 4 tries, 50 refinement steps), move one object and delete another,
+# 4 tries, 50 refinement steps, then the slots the view does not need dropped: one slot an
+# object), move one object (the blue cylinder) and delete another (the cyan cylinder),
 # render an orbit of novel views with masks before and after the edit, and draw a contact sheet:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)

@@ -79,6 +79,7 @@ fn main() -> Result<()> {
         seed: 0,
         tries: 1,
         refine: RefineOptions::default(),
+        redundant_mse: 0.0,
     };
     let refine = RefineOptions {
         steps: args.steps,

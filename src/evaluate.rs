@@ -30,6 +30,8 @@ pub struct SceneScores {
     pub fg_share: Option<f64>,
     /// Foreground slots that win at least one pixel of the input view.
     pub slots_used: usize,
+    /// Foreground slots in the encoding (after redundant slots were dropped).
+    pub slots_kept: usize,
 }
 
 /// Means over scenes (each mean over the scenes where the score is defined).
@@ -44,6 +46,7 @@ pub struct DatasetScores {
     pub nv_ari: Option<f64>,
     pub fg_share: Option<f64>,
     pub slots_used: f64,
+    pub slots_kept: f64,
 }
 
 fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
@@ -63,11 +66,8 @@ impl DatasetScores {
             fg_ari: mean(rows.iter().map(|r| r.fg_ari)),
             nv_ari: mean(rows.iter().map(|r| r.nv_ari)),
             fg_share: mean(rows.iter().map(|r| r.fg_share)),
-            slots_used: if rows.is_empty() {
-                0.0
-            } else {
-                rows.iter().map(|r| r.slots_used as f64).sum::<f64>() / rows.len() as f64
-            },
+            slots_used: mean(rows.iter().map(|r| Some(r.slots_used as f64))).unwrap_or(0.0),
+            slots_kept: mean(rows.iter().map(|r| Some(r.slots_kept as f64))).unwrap_or(0.0),
         }
     }
 }
@@ -83,6 +83,8 @@ pub struct EvalOptions {
     pub tries: usize,
     /// Test-time refinement of the latents on view 0 (`steps: 0`: none).
     pub refine: RefineOptions,
+    /// Slots view 0 does not need are dropped within this error budget (0: none).
+    pub redundant_mse: f64,
 }
 
 /// Encodes view 0 of `scene` as the protocol does (slots placed with view 0's camera).
@@ -101,6 +103,7 @@ pub fn encode_scene(model: &Colf, scene: &SceneData, opts: &EvalOptions) -> Resu
             source: scene.name.clone(),
             tries: opts.tries.max(1),
             refine: opts.refine,
+            redundant_mse: opts.redundant_mse,
         },
     )
 }
@@ -199,9 +202,10 @@ pub fn evaluate(
     let mut rows = Vec::with_capacity(n);
     for i in 0..n {
         let scene = data.load(i)?;
-        let (_, renders) = encode_and_render(model, &scene, opts)
+        let (codes, renders) = encode_and_render(model, &scene, opts)
             .with_context(|| format!("scene {}", scene.name))?;
-        let row = score_scene(&scene, &renders)?;
+        let mut row = score_scene(&scene, &renders)?;
+        row.slots_kept = codes.slots.len();
         on_scene(i, &row, &renders);
         rows.push(row);
     }

@@ -97,30 +97,53 @@ pub fn input_view_mse(
     camera: &Frame,
     image: &RgbImage32,
 ) -> Result<f64> {
-    let (origins, dirs) = pixel_rays(camera, image);
-    let n = origins.len();
-    let pick: Vec<usize> = if n <= COMPARE_PIXELS {
-        (0..n).collect()
-    } else {
-        let mut rng = StdRng::seed_from_u64(0);
-        (0..COMPARE_PIXELS)
-            .map(|_| rng.random_range(0..n))
-            .collect()
-    };
-    let o: Vec<DVec3> = pick.iter().map(|&p| origins[p]).collect();
-    let d: Vec<DVec3> = pick.iter().map(|&p| dirs[p]).collect();
+    let pixels = ComparedPixels::new(camera, image);
     let prepared = model.prepare(fg_latents, bg_latent)?;
-    let out = model.render_rays(&prepared, slot_to_world, &o, &d)?;
-    let sum: f64 = pick
-        .iter()
-        .enumerate()
-        .flat_map(|(r, &p)| (0..3).map(move |c| (r, p, c)))
-        .map(|(r, p, c)| {
-            let e = out.rgb[3 * r + c] as f64 - image.data[3 * p + c] as f64;
-            e * e
-        })
-        .sum();
-    Ok(sum / (3 * pick.len()).max(1) as f64)
+    let out = model.render_rays(&prepared, slot_to_world, &pixels.origins, &pixels.dirs)?;
+    Ok(pixels.mse(&out.rgb))
+}
+
+/// The pixels of an input view that encodings are judged on (all of them, or a fixed seeded
+/// subset of `COMPARE_PIXELS`: the same subset for every call on the same image).
+pub struct ComparedPixels {
+    /// World rays through the pixels.
+    pub origins: Vec<DVec3>,
+    pub dirs: Vec<DVec3>,
+    /// Their colours in the image, RGB.
+    target: Vec<f32>,
+}
+
+impl ComparedPixels {
+    pub fn new(camera: &Frame, image: &RgbImage32) -> ComparedPixels {
+        let (origins, dirs) = pixel_rays(camera, image);
+        let n = origins.len();
+        let pick: Vec<usize> = if n <= COMPARE_PIXELS {
+            (0..n).collect()
+        } else {
+            let mut rng = StdRng::seed_from_u64(0);
+            (0..COMPARE_PIXELS)
+                .map(|_| rng.random_range(0..n))
+                .collect()
+        };
+        ComparedPixels {
+            origins: pick.iter().map(|&p| origins[p]).collect(),
+            dirs: pick.iter().map(|&p| dirs[p]).collect(),
+            target: pick
+                .iter()
+                .flat_map(|&p| image.data[3 * p..3 * p + 3].iter().copied())
+                .collect(),
+        }
+    }
+
+    /// Mean squared colour error of `rgb` (RGB per compared pixel, in order).
+    pub fn mse(&self, rgb: &[f32]) -> f64 {
+        let sum: f64 = rgb
+            .iter()
+            .zip(&self.target)
+            .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+            .sum();
+        sum / self.target.len().max(1) as f64
+    }
 }
 
 /// Refines `fg_latents` (and the background latent, unless the model fixes it to zero; and the

@@ -51,7 +51,22 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
     let default = colf::model::Colf::load_resolved(None).unwrap();
     let inference = default.config().default_inference();
     assert!(inference.refine > 0 && inference.tries > 1, "{inference:?}");
-    assert_eq!(codes.slots.len(), inference.slots);
+    // Slots the input view does not need are dropped (--redundant); --redundant 0 keeps all.
+    assert!(
+        (1..=inference.slots).contains(&codes.slots.len()),
+        "{}",
+        codes.slots.len()
+    );
+    let all = dir.path().join("all.codes");
+    bin("colf-encode")
+        .arg(scene.join("view_000.png"))
+        .args(["--camera", scene.join("transforms.json").to_str().unwrap()])
+        .args(["--redundant", "0", "-o", all.to_str().unwrap()])
+        .assert()
+        .success();
+    let all = Codes::read(all.to_str().unwrap()).unwrap();
+    assert_eq!(all.slots.len(), inference.slots);
+    assert!(codes.slots.iter().all(|s| all.slots.contains(s)));
     // Every slot's frame has the input camera's rotation (the default model's attention frames
     // move only the origin, to where the slot attends).
     let cams =

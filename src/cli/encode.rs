@@ -25,6 +25,11 @@ fit this one. Only IMAGE is used, so novel views stay predictions. Too many step
 --refine-lr fit the input view at the expense of novel views. --tries N encodes N times (slot \
 noise seeds --seed, --seed + 1, ...) and keeps the encoding whose render of IMAGE is closest to \
 it, before any refinement.\n\n\
+Last, slots IMAGE does not need are dropped: smallest attention mass first, a slot goes when \
+the slots left still render IMAGE with a mean squared error at most --redundant MSE above that \
+of them all (the bound is on the total). Given more slots than objects, slot attention \
+sometimes gives one object two slots that draw it alike; keeping one means an edit that moves \
+or deletes it moves or deletes all of it. --redundant 0 keeps every slot.\n\n\
 Unset, --slots, --tries and --refine take the model's default encoding (its config's \
 `inference`, written by colf-train configure; a model without one is encoded in one pass with \
 its training slot count). The bundled model's is 12 slots, 4 tries and 50 refinement steps: the \
@@ -118,6 +123,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
         source,
         tries: encoding.tries,
         refine: args.fit.options(encoding.refine, args.seed),
+        redundant_mse: args.fit.redundant_mse(),
     };
     let codes = encode_image(&model, &image, &opts)?;
     codes.write(&args.output)

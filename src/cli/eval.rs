@@ -35,10 +35,10 @@ encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-
 on view 0; PSNR, SSIM and NV-ARI (FG-ARI of the novel views) are averaged over the other views; \
 then each score is averaged over the scenes where it is defined. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
-slots) and slots_used (foreground slots that win a pixel of view 0). View 0 is encoded as \
+slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). View 0 is encoded as \
 colf-encode would: with the model's default encoding (its slots, tries and refinement steps on \
 view 0, see colf-encode(1); view 0 only, so the novel views stay unseen), or as --slots, \
---tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps and, \
+--tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps, redundant_mse and, \
 when refining, the refine settings. The JSON object goes to stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
 masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
@@ -189,6 +189,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         seed: args.seed,
         tries: encoding.tries,
         refine: args.fit.options(encoding.refine, args.seed),
+        redundant_mse: args.fit.redundant_mse(),
     };
     let (scores, rows) = crate::evaluate::evaluate(
         &model,
@@ -231,6 +232,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["slots"] = serde_json::json!(encoding.slots);
     doc["tries"] = serde_json::json!(encoding.tries);
     doc["refine_steps"] = serde_json::json!(encoding.refine);
+    doc["redundant_mse"] = serde_json::json!(options.redundant_mse);
     if options.refine.steps > 0 {
         doc["refine"] = serde_json::to_value(options.refine)?;
     }

@@ -73,6 +73,13 @@ pub struct FitArgs {
     #[arg(long, default_value_t = crate::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
     pub refine_anchor: f64,
 
+    /// Drop slots the input image does not need (smallest attention mass first) while its
+    /// render's mean squared error grows by at most MSE in all: an object drawn by two slots
+    /// keeps one, so edits move or delete all of it (0: keep every slot; default: 2e-5, or 0
+    /// with --fast).
+    #[arg(long, value_name = "MSE")]
+    pub redundant: Option<f64>,
+
     /// Also move the slots' frame origins during refinement, with this learning rate (world
     /// units; 0: frames fixed).
     #[arg(long, default_value_t = crate::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true)]
@@ -97,6 +104,16 @@ impl FitArgs {
             tries: self.tries.unwrap_or(base.tries),
             refine: self.refine.unwrap_or(base.refine),
         }
+    }
+
+    /// The error budget for dropping redundant slots: --redundant, else none for `--fast` (one
+    /// pass, nothing more), else `DEFAULT_REDUNDANT_MSE`.
+    pub fn redundant_mse(&self) -> f64 {
+        self.redundant.unwrap_or(if self.fast {
+            0.0
+        } else {
+            crate::encode::DEFAULT_REDUNDANT_MSE
+        })
     }
 
     /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
@@ -165,5 +182,19 @@ mod tests {
                 .unwrap_err();
             assert_eq!(err.exit_code(), 2);
         }
+    }
+
+    #[test]
+    fn redundant_slots_are_dropped_unless_fast_or_told() {
+        let budget = |flags: &[&str]| {
+            EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat())
+                .unwrap()
+                .fit
+                .redundant_mse()
+        };
+        assert_eq!(budget(&[]), crate::encode::DEFAULT_REDUNDANT_MSE);
+        assert_eq!(budget(&["--fast"]), 0.0);
+        assert_eq!(budget(&["--fast", "--redundant", "1e-5"]), 1e-5);
+        assert_eq!(budget(&["--redundant", "0"]), 0.0);
     }
 }
