@@ -322,12 +322,15 @@ mod tests {
         let camera = default_camera(16, 16);
         let mut opts = options(3, 1);
         opts.num_slots = 6;
-        let all = encode_image(&model, &img, &opts).unwrap().slots;
+        let Codes {
+            slots: all,
+            background,
+            ..
+        } = encode_image(&model, &img, &opts).unwrap();
         let error = |slots: &[Slot], background: &[f32]| {
             let (latents, frames) = latents_and_frames(slots);
             input_view_mse(&model, &latents, background, &frames, &camera, &img).unwrap()
         };
-        let background = encode_image(&model, &img, &opts).unwrap().background;
         let base = error(&all, &background);
         // No budget: every slot stays.
         let kept =
