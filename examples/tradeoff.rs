@@ -240,7 +240,7 @@ fn main() -> Result<()> {
             cmd.arg(dir.join("view_000.png"))
                 .arg("--camera")
                 .arg(&cams_path)
-                .args(["--slots", &args.slots.to_string()])
+                .args(["--fast", "--slots", &args.slots.to_string()])
                 .arg("--model")
                 .arg(&model_path)
                 .arg("-o")
