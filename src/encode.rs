@@ -225,11 +225,17 @@ pub fn drop_redundant_slots(
     }
     let (latents, frames) = latents_and_frames(&slots);
     let pixels = ComparedPixels::new(camera, image);
-    // The hypernetworks run once; a subset is rendered by leaving the other slots out of
-    // every ray's composition (the fast renderer's `active` mask: the same as deleting them).
-    let renderer = FastRenderer::new(model, &model.prepare(&latents, background)?, &frames)?;
+    // Light fields: the hypernetworks run once, and a subset is rendered by leaving the other
+    // slots out of every ray's composition (the fast renderer's `active` mask: the same as
+    // deleting them). The volumetric baseline has no such mask and renders each subset anew.
+    let renderer = if model.config().is_volumetric() {
+        None
+    } else {
+        let prepared = model.prepare(&latents, background)?;
+        Some(FastRenderer::new(model, &prepared, &frames)?)
+    };
     let error_of = |keep: &[bool]| -> Result<f64> {
-        if renderer.is_volumetric() {
+        let Some(renderer) = &renderer else {
             let (latents, frames): (Vec<_>, Vec<_>) = latents
                 .iter()
                 .zip(&frames)
@@ -238,7 +244,7 @@ pub fn drop_redundant_slots(
                 .map(|((l, f), _)| (l.clone(), *f))
                 .unzip();
             return input_view_mse(model, &latents, background, &frames, camera, image);
-        }
+        };
         let fields: Vec<bool> = std::iter::once(true).chain(keep.iter().copied()).collect();
         let active = fields.repeat(pixels.origins.len());
         let out = renderer.render(&pixels.origins, &pixels.dirs, None, Some(&active))?;

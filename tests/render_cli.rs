@@ -20,10 +20,16 @@ fn scene(dir: &Path) -> PathBuf {
 }
 
 fn encode(scene: &Path, out: &Path) {
+    encode_with(scene, out, &[]);
+}
+
+/// `colf-encode` of the scene's first view with `flags` added to the default encoding.
+fn encode_with(scene: &Path, out: &Path, flags: &[&str]) {
     bin("colf-encode")
         .arg(scene.join("view_000.png"))
         .arg("--camera")
         .arg(scene.join("transforms.json"))
+        .args(flags)
         .arg("-o")
         .arg(out)
         .assert()
@@ -58,12 +64,7 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
         codes.slots.len()
     );
     let all = dir.path().join("all.codes");
-    bin("colf-encode")
-        .arg(scene.join("view_000.png"))
-        .args(["--camera", scene.join("transforms.json").to_str().unwrap()])
-        .args(["--redundant", "0", "-o", all.to_str().unwrap()])
-        .assert()
-        .success();
+    encode_with(&scene, &all, &["--redundant", "0"]);
     let all = Codes::read(all.to_str().unwrap()).unwrap();
     assert_eq!(all.slots.len(), inference.slots);
     assert!(codes.slots.iter().all(|s| all.slots.contains(s)));
