@@ -5,7 +5,7 @@ fn main() {
     let args = TrainArgs::parse();
     colf::cli::run("train", || match &args.command {
         Some(TrainCommand::Init(init)) => {
-            let summary = colf::model::init_model_file(
+            let summary = colf::train::init::init_model_file(
                 &init.preset,
                 &init.config_overrides,
                 init.seed,

@@ -10,7 +10,7 @@
 //! is used: "of peak" divides by the best wall-clock matmul rate of this run (both cores, when
 //! the other jobs let us have them), "of peak per CPU-s" divides work per CPU-second by the best
 //! per-CPU-second rate of a matmul (one thread, or both), which other jobs on the machine do not
-//! distort. Renders go through `colf::render_fast` as `colf-render` does; one row measures the
+//! distort. Renders go through `colf::render::fast` as `colf-render` does; one row measures the
 //! candle path (`Colf::render_rays`, what training uses) for comparison. Measurements that take
 //! longer than 2 s are run once (no warm-up).
 
@@ -156,7 +156,7 @@ fn measure_matmul() -> Result<Value> {
     let (a, b) = (noise(m * k, 1), noise(k * n, 2));
     // The renderer's own dense layer (one `gemm` call, then a bias pass of m·n adds: 0.4 % of
     // the m·k·n multiply-adds), so the reference and the renders use the same kernel.
-    let dense = colf::render_fast::HostDense {
+    let dense = colf::render::fast::HostDense {
         input: k,
         output: n,
         w: b,
@@ -198,7 +198,7 @@ fn measure_render(
     let (origins, dirs) = frame_rays(size);
     let t = Instant::now();
     let prepared = model.prepare(&latents, &noise(d, 3))?;
-    let renderer = colf::render_fast::FastRenderer::new(&model, &prepared, &frames)?;
+    let renderer = colf::render::fast::FastRenderer::new(&model, &prepared, &frames)?;
     let prepare_ms = t.elapsed().as_secs_f64() * 1e3;
     let (s, runs, cpu) = time_median(reps, || {
         if candle_path {

@@ -1,6 +1,6 @@
 //! How much of the novel-view error is the decoder, and how much is inferring a scene from one
 //! image? For each held-out scene, view 0 is encoded as `colf-eval` does, then the latents and
-//! frame origins are refined on the first V views (`colf::encode::refine_slots`) and
+//! frame origins are refined on the first V views (`colf::encode::refine::refine_slots`) and
 //! every view is rendered. Printed per V, as the mean over scenes:
 //! - `fitted`: PSNR of the views the latents were fitted to (how well the decoder can draw a
 //!   scene whose latents are chosen for those views);
@@ -12,11 +12,11 @@
 
 use anyhow::{bail, Context, Result};
 use colf::dataset::Dataset;
-use colf::encode::refine_slots;
+use colf::encode::refine::refine_slots;
+use colf::encode::InputView;
 use colf::evaluate::{encode_scene, EvalOptions};
 use colf::metrics::psnr;
-use colf::model::Colf;
-use colf::refine::RefineOptions;
+use colf::encode::refine::RefineOptions;
 use colf::render::PreparedScene;
 use std::path::PathBuf;
 
@@ -72,7 +72,7 @@ fn mean(v: &[f64]) -> f64 {
 
 fn main() -> Result<()> {
     let args = parse_args()?;
-    let model = Colf::load_resolved(args.model.as_deref())?;
+    let model = colf::cli::model_path::load_model(args.model.as_deref())?;
     let data = Dataset::open(&args.data)?;
     let eval = EvalOptions {
         num_slots: model.config().default_slots,
@@ -100,10 +100,11 @@ fn main() -> Result<()> {
                 );
             }
             let mut codes = encode_scene(&model, &scene, &eval)?;
-            let views: Vec<_> = scene.views[..fit]
+            let views: Vec<InputView> = scene.views[..fit]
                 .iter()
-                .map(|v| (&v.frame, &v.image))
+                .map(|v| InputView::new(&v.frame, &v.image))
                 .collect();
+            let views: Vec<&InputView> = views.iter().collect();
             refine_slots(
                 &model,
                 &mut codes.slots,

@@ -3,7 +3,7 @@
 //! For each of `--scenes` held-out synthetic scenes (`colf-synth --split test --size 128`),
 //! view 0 is encoded in one pass (`colf-encode --fast --camera`, optionally `--prune P`) and views 1–3 are rendered:
 //! - exactly (the reference: no pruning, full resolution, no `--adaptive`);
-//! - adaptively with each ε of `--eps` (see `colf::render_adaptive`), after each `--prune`;
+//! - adaptively with each ε of `--eps` (see `colf::render::adaptive`), after each `--prune`;
 //! - exactly at half resolution, upsampled ×2 (bilinear) to compare at full resolution.
 //!
 //! Per configuration: the render time (median of `--reps` runs per frame, summed over frames)
@@ -174,7 +174,7 @@ fn half(frame: &Frame) -> Frame {
 
 fn main() -> Result<()> {
     let args = parse_args()?;
-    let model_path = colf::model::resolve_model_path(args.model.as_deref())?;
+    let model_path = colf::cli::model_path::resolve_model_path(args.model.as_deref())?;
     let model = Colf::load(&model_path)?;
     let identity = model.identity()?;
     let work = tempfile::tempdir()?;
@@ -348,11 +348,7 @@ fn main() -> Result<()> {
                 half: c.half_res,
                 ms: 1e3 * t.seconds / frames.max(1) as f64,
                 speedup: exact_t / t.seconds,
-                psnr_exact: if mse > 0.0 {
-                    -10.0 * mse.log10()
-                } else {
-                    f64::INFINITY
-                },
+                psnr_exact: colf::metrics::psnr_from_mse(mse),
                 loss: exact_gt - mean(&t.psnr_gt),
                 evaluated: (t.possible > 0).then(|| t.evaluated as f64 / t.possible as f64),
             }

@@ -7,9 +7,9 @@ use crate::dataset::{Dataset, SceneData};
 use crate::encode::{encode_image, EncodeOptions};
 use crate::metrics::{ari, fg_ari, psnr, ssim};
 use crate::model::Colf;
-use crate::refine::RefineOptions;
+use crate::encode::refine::RefineOptions;
 use crate::render::PreparedScene;
-use crate::render_output::FrameRender;
+use crate::render::output::FrameRender;
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 

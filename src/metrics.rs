@@ -63,12 +63,17 @@ pub fn mse(pred: &[f32], gt: &[f32]) -> Result<f64> {
 /// `peak_signal_noise_ratio(gt, pred, data_range=1)`. Identical inputs give `f64::INFINITY`
 /// (`colf-eval` prints it as JSON `null`, see [`ImageScores`]).
 pub fn psnr(pred: &[f32], gt: &[f32]) -> Result<f64> {
-    let err = mse(pred, gt)?;
-    Ok(if err == 0.0 {
+    Ok(psnr_from_mse(mse(pred, gt)?))
+}
+
+/// PSNR in dB of a mean squared error for values in [0, 1]: `10 log10(1 / mse)`, `+inf` at 0.
+/// Training logs floor the error first (`mse.max(1e-12)`) so a perfect batch logs 120 dB.
+pub fn psnr_from_mse(mse: f64) -> f64 {
+    if mse == 0.0 {
         f64::INFINITY
     } else {
-        10.0 * (1.0 / err).log10()
-    })
+        10.0 * (1.0 / mse).log10()
+    }
 }
 
 /// Normalised 1-D Gaussian taps `exp(-x² / 2σ²)` for x in -radius..=radius (scipy's

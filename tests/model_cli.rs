@@ -56,7 +56,7 @@ fn usage_and_io_errors_exit_cleanly() {
 
 #[test]
 fn the_bundled_default_model_is_found_and_loads() {
-    let candidates = colf::model::default_model_candidates();
+    let candidates = colf::cli::model_path::default_model_candidates();
     let bundled = candidates.last().unwrap();
     assert!(bundled.ends_with("models/default.safetensors"));
     assert!(bundled.is_file(), "{} is missing", bundled.display());
@@ -65,6 +65,6 @@ fn the_bundled_default_model_is_found_and_loads() {
     let raw = std::fs::read(bundled).unwrap();
     assert!(raw.len() < 20 << 20, "default model is {} bytes", raw.len());
     // With an explicit path, the default lookup is bypassed.
-    let explicit = colf::model::resolve_model_path(Some("/x/m.safetensors")).unwrap();
+    let explicit = colf::cli::model_path::resolve_model_path(Some("/x/m.safetensors")).unwrap();
     assert_eq!(explicit, std::path::PathBuf::from("/x/m.safetensors"));
 }

@@ -54,7 +54,7 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
     assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
     let codes = Codes::read(a.to_str().unwrap()).unwrap();
     // The bundled model's default encoding: its `inference` slot count, refined, best of tries.
-    let default = colf::model::Colf::load_resolved(None).unwrap();
+    let default = colf::cli::model_path::load_model(None).unwrap();
     let inference = default.config().default_inference();
     assert!(inference.refine > 0 && inference.tries > 1, "{inference:?}");
     // Slots the input view does not need are dropped (--redundant); --redundant 0 keeps all.
@@ -122,7 +122,7 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
         );
     }
     let exr = dir.path().join("r1/view_000.exr");
-    let channels = colf::render_output::read_exr_channels(&exr).unwrap();
+    let channels = colf::render::output::read_exr_channels(&exr).unwrap();
     assert!(channels["R"].iter().all(|v| v.is_finite()));
     let last = codes.slots.len() - 1;
     assert!(
@@ -387,7 +387,7 @@ fn refined_encoding_fits_the_input_view_and_is_deterministic() {
 
     let bad = dir.path().join("bad.codes");
     let out = encode_refined(&bad, &["--refine", "3", "--refine-lr", "-1"]);
-    one_line_error(&out, "encode", "--refine-lr");
+    one_line_error(&out, "encode", "learning rate");
     assert!(!bad.exists());
     let out = encode_refined(&bad, &["--refine", "many"]);
     assert_eq!(out.status.code(), Some(2));

@@ -1,10 +1,10 @@
-//! The fast renderer (`colf::render_fast`) against the candle path (`Colf::render_rays`): the
+//! The fast renderer (`colf::render::fast`) against the candle path (`Colf::render_rays`): the
 //! same weights must give the same colours, weights and ordering values within 1e-4, for the
 //! light-field presets (with and without Fourier features) and the volumetric baseline; and the
 //! fast renderer must be deterministic.
 
 use colf::model::{Colf, Config, RayOutput};
-use colf::render_fast::FastRenderer;
+use colf::render::fast::FastRenderer;
 use glam::{DMat4, DQuat, DVec3};
 
 fn noise(n: usize, seed: u64) -> Vec<f32> {

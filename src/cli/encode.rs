@@ -106,7 +106,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
             Some(frame.clone())
         }
     };
-    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     let source = args.source.clone().unwrap_or_else(|| {
         std::path::Path::new(&args.image)
             .file_name()

@@ -6,6 +6,7 @@ pub mod cameras;
 pub mod edit;
 pub mod encode;
 pub mod eval;
+pub mod model_path;
 pub mod render;
 pub mod sheet;
 pub mod synth;
@@ -62,15 +63,15 @@ pub struct FitArgs {
     pub refine: Option<usize>,
 
     /// Learning rate of the refinement.
-    #[arg(long, default_value_t = crate::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true)]
     pub refine_lr: f64,
 
     /// Pixels of the input image rendered per refinement step (all when the image has fewer).
-    #[arg(long, default_value_t = crate::refine::RefineOptions::default().rays, value_name = "R")]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().rays, value_name = "R")]
     pub refine_rays: usize,
 
     /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
-    #[arg(long, default_value_t = crate::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
     pub refine_anchor: f64,
 
     /// Drop slots the input image does not need (smallest attention mass first) while its
@@ -82,7 +83,7 @@ pub struct FitArgs {
 
     /// Also move the slots' frame origins during refinement, with this learning rate (world
     /// units; 0: frames fixed).
-    #[arg(long, default_value_t = crate::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true)]
     pub refine_frame_lr: f64,
 }
 
@@ -117,8 +118,8 @@ impl FitArgs {
     }
 
     /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
-    pub fn options(&self, steps: usize, seed: u64) -> crate::refine::RefineOptions {
-        crate::refine::RefineOptions {
+    pub fn options(&self, steps: usize, seed: u64) -> crate::encode::refine::RefineOptions {
+        crate::encode::refine::RefineOptions {
             steps,
             lr: self.refine_lr,
             rays: self.refine_rays,

@@ -126,7 +126,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             display_name(&args.cameras)
         );
     }
-    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     let mut scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
     if args.no_shadows {
         scene.drop_shadows();
@@ -192,6 +192,6 @@ mod tests {
             "--adaptive",
         ])
         .unwrap();
-        assert_eq!(args.adaptive, Some(crate::render_adaptive::RECOMMENDED_EPS));
+        assert_eq!(args.adaptive, Some(crate::render::adaptive::RECOMMENDED_EPS));
     }
 }

@@ -19,7 +19,7 @@
 use super::config::Config;
 use super::hypernet::BackgroundField;
 use super::init::tensor_seed;
-use super::ColfModel;
+use super::ColfNet;
 use anyhow::{bail, Result};
 use candle_core::{DType, Device, Tensor};
 use rand::rngs::StdRng;
@@ -29,7 +29,7 @@ use std::collections::BTreeMap;
 
 /// `model`'s tensors (`tensors`) grown and converted for `cfg`; `name` is used in errors.
 pub fn grow_tensors(
-    model: &ColfModel,
+    model: &ColfNet,
     tensors: &BTreeMap<String, Tensor>,
     cfg: &Config,
     seed: u64,

@@ -22,7 +22,7 @@ pub const SHADOW_BIAS_INIT: f64 = -8.0 / SHADOW_LOGIT_GAIN;
 
 /// How much a foreground slot darkens the background on a ray: σ = softplus(g·(w·f + b)) ≥ 0, f
 /// the slot's ray feature, g = [`SHADOW_LOGIT_GAIN`]. The compositor multiplies the background's colour by exp(−Σ σ) over the
-/// foreground slots (`ColfModel::decode`).
+/// foreground slots (`ColfNet::decode`).
 ///
 /// Why softplus and this initialisation: σ must be ≥ 0 and start near 0, and every parameter
 /// must receive a consistent gradient from the first step. A gate initialised at 0 (σ = gate ·

@@ -23,7 +23,7 @@
 //!   claim the whole image. It moves with the frame, so moved and merged slots keep it.
 
 use super::config::Config;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
@@ -64,7 +64,7 @@ pub fn plucker_in_frame(world_to_frame: &DMat4, o: DVec3, d: DVec3, scene_scale:
 
 /// Writes the encoding of the line (o, d) in the frame `world_to_frame` to `out`
 /// (`Config::ray_input_dim` values): the 6 bounded Plücker coordinates, then sin/cos of each at
-/// `freqs` octaves. The one encoding of rays and shadow lines, here and in `render_fast.rs`.
+/// `freqs` octaves. The one encoding of rays and shadow lines, here and in `render/fast.rs`.
 pub fn encode_line(
     out: &mut [f32],
     world_to_frame: &DMat4,
@@ -121,18 +121,31 @@ fn check(scene: usize, rays: &SceneRays) -> Result<Vec<DMat4>> {
             rays.dirs.len()
         );
     }
-    for (i, (o, d)) in rays.origins.iter().zip(rays.dirs).enumerate() {
+    check_rays(rays.origins, rays.dirs).with_context(|| format!("scene {scene}"))?;
+    world_to_slot(rays.slot_to_world).with_context(|| format!("scene {scene}"))
+}
+
+/// Refuses a ray with a non-finite origin or a zero or non-finite direction: the one check of
+/// rays, made wherever rays enter a renderer.
+pub fn check_rays(origins: &[DVec3], dirs: &[DVec3]) -> Result<()> {
+    for (i, (o, d)) in origins.iter().zip(dirs).enumerate() {
         if !o.is_finite() || !d.is_finite() || d.length_squared() < 1e-24 {
-            bail!("scene {scene}: ray {i} has a non-finite origin or a zero/non-finite direction");
+            bail!("ray {i} has a non-finite origin or a zero/non-finite direction");
         }
     }
-    rays.slot_to_world
+    Ok(())
+}
+
+/// The world-to-slot transforms: the inverse of each `slot_to_world`, refused unless it is
+/// finite and invertible (|det| ≥ 1e-12).
+pub fn world_to_slot(slot_to_world: &[DMat4]) -> Result<Vec<DMat4>> {
+    slot_to_world
         .iter()
         .enumerate()
         .map(|(k, m)| {
             let det = m.determinant();
             if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
-                bail!("scene {scene}: slot {k}'s slot_to_world is not an invertible finite matrix");
+                bail!("slot {k}'s slot_to_world is not an invertible finite matrix");
             }
             Ok(m.inverse())
         })

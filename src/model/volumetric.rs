@@ -20,7 +20,7 @@
 //! is its expected depth Σ_i T_i·α_i·(σ_s,i/σ_i)·t_i / weight (world units from the ray origin).
 //!
 //! The latent enters by concatenation, as in uORF; its part of W_0 and W_B is the same for
-//! every sample of a slot, so the fast renderer (`crate::render_fast`) folds W·z into a per-slot
+//! every sample of a slot, so the fast renderer (`crate::render::fast`) folds W·z into a per-slot
 //! bias once and runs only the E (and W + E) columns per sample — the same arithmetic, none of
 //! it repeated. The candle [`Volumetric::forward`] here is the reference it is tested against.
 //!
@@ -246,7 +246,7 @@ impl Volumetric {
 
     /// The reference render of R rays with N samples (candle ops, plain concatenation):
     /// colour [R, 3], weights [R, S], depths [R, S]. Memory grows with R·N·S: for tests and
-    /// small batches; `crate::render_fast` renders frames.
+    /// small batches; `crate::render::fast` renders frames.
     pub fn render_reference(
         &self,
         latents: &Tensor,

@@ -4,7 +4,7 @@
 //! Every step draws its randomness from `StdRng::seed_from_u64(mix(seed, step))`, so a run
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
-use super::adam::{Adam, AdamConfig};
+use crate::optim::{Adam, AdamConfig};
 use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
@@ -408,7 +408,7 @@ impl Trainer {
         log.step = self.step;
         log.loss = loss_value;
         log.mse = mse_value;
-        log.psnr = -10.0 * mse_value.max(1e-12).log10();
+        log.psnr = crate::metrics::psnr_from_mse(mse_value.max(1e-12));
         log.lr = lr;
         log.mask_loss = mask_loss_value;
         let rgb_host = decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
@@ -733,7 +733,7 @@ fn ray_metrics(
         }
     }
     if obj_n > 0 {
-        log.obj_psnr = Some(-10.0 * (obj_sq / obj_n as f64).max(1e-12).log10());
+        log.obj_psnr = Some(crate::metrics::psnr_from_mse((obj_sq / obj_n as f64).max(1e-12)));
         log.fg_share = Some(fg_sum / (obj_n / 3) as f64);
     }
     if !aris.is_empty() {

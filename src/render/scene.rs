@@ -1,14 +1,12 @@
-//! Rendering: prepared slots + a camera → one frame (colour, compositor weights, ordering).
-//!
-//! Frames are rendered by the fast inference path (`render_fast.rs`: same weights, same result
-//! as the candle path to 1e-4, tested), exactly, or adaptively (`render_adaptive.rs`).
+//! A prepared scene: codes checked against the model, hypernetworks run once, frames rendered
+//! exactly or adaptively through the fast renderer.
 
 use crate::camera::Frame;
 use crate::codes::Codes;
 use crate::model::Colf;
-use crate::render_adaptive::{render_adaptive, AdaptiveStats};
-use crate::render_fast::FastRenderer;
-use crate::render_output::FrameRender;
+use crate::render::adaptive::{render_adaptive, AdaptiveStats};
+use crate::render::fast::FastRenderer;
+use crate::render::output::FrameRender;
 use anyhow::{bail, Result};
 use glam::{DMat4, DVec3};
 

@@ -20,7 +20,7 @@
 
 use crate::camera::Frame;
 use crate::model::RayOutput;
-use crate::render_fast::FastRenderer;
+use crate::render::fast::FastRenderer;
 use anyhow::{bail, Result};
 use glam::DVec3;
 

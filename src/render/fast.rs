@@ -376,13 +376,7 @@ impl FastRenderer {
             );
         }
         let mut inverses = vec![DMat4::IDENTITY];
-        for (k, m) in slot_to_world.iter().enumerate() {
-            let det = m.determinant();
-            if !m.is_finite() || !det.is_finite() || det.abs() < 1e-12 {
-                bail!("slot {k}'s slot_to_world is not an invertible finite matrix");
-            }
-            inverses.push(m.inverse());
-        }
+        inverses.extend(crate::model::rays::world_to_slot(slot_to_world)?);
         let kind = if colf.model().volumetric().is_some() {
             Kind::Volumetric(Box::new(VolumetricHost::new(colf, prepared)?))
         } else {
@@ -429,11 +423,7 @@ impl FastRenderer {
         if dirs.len() != r {
             bail!("{r} ray origins but {} directions", dirs.len());
         }
-        for (i, (o, d)) in origins.iter().zip(dirs).enumerate() {
-            if !o.is_finite() || !d.is_finite() || d.length_squared() < 1e-24 {
-                bail!("ray {i} has a non-finite origin or a zero/non-finite direction");
-            }
-        }
+        crate::model::rays::check_rays(origins, dirs)?;
         if let Some(a) = active {
             if a.len() != r * s {
                 bail!(

@@ -1,0 +1,72 @@
+//! The last step of an encoding: drop the slots the input view does not need.
+//!
+//! Given more slots than objects (the default encoding uses 12), slot attention sometimes gives
+//! one object two slots that draw it alike; the one that loses the compositor's competition
+//! changes nothing visible, but deleting or moving its twin in an edit would leave a copy
+//! behind. Slots with no visible content are dropped the same way.
+
+use super::view::InputView;
+use super::latents_and_frames;
+use crate::codes::Slot;
+use crate::model::Colf;
+use crate::render::fast::FastRenderer;
+use anyhow::Result;
+
+/// Drops the slots `view` does not need: in order of attention mass (smallest first), a slot
+/// is removed when the slots left still render the view with a mean squared error at most
+/// `tolerance` above that of all `slots`. The bound is on the total, so many small removals
+/// cannot add up to a visible loss.
+pub fn drop_redundant_slots(
+    model: &Colf,
+    slots: Vec<Slot>,
+    background: &[f32],
+    view: &InputView,
+    tolerance: f64,
+) -> Result<Vec<Slot>> {
+    if tolerance <= 0.0 || slots.is_empty() {
+        return Ok(slots);
+    }
+    let (latents, frames) = latents_and_frames(&slots);
+    let pixels = &view.compared;
+    // Light fields: the hypernetworks run once, and a subset is rendered by leaving the other
+    // slots out of every ray's composition (the fast renderer's `active` mask: the same as
+    // deleting them). The volumetric baseline has no such mask and renders each subset anew.
+    let renderer = if model.config().is_volumetric() {
+        None
+    } else {
+        let prepared = model.prepare(&latents, background)?;
+        Some(FastRenderer::new(model, &prepared, &frames)?)
+    };
+    let error_of = |keep: &[bool]| -> Result<f64> {
+        let Some(renderer) = &renderer else {
+            let (latents, frames): (Vec<_>, Vec<_>) = latents
+                .iter()
+                .zip(&frames)
+                .zip(keep)
+                .filter(|(_, &k)| k)
+                .map(|((l, f), _)| (l.clone(), *f))
+                .unzip();
+            return view.mse(model, &latents, background, &frames);
+        };
+        let fields: Vec<bool> = std::iter::once(true).chain(keep.iter().copied()).collect();
+        let active = fields.repeat(pixels.origins.len());
+        let out = renderer.render(&pixels.origins, &pixels.dirs, None, Some(&active))?;
+        Ok(pixels.mse(&out.rgb))
+    };
+    let mut keep = vec![true; slots.len()];
+    let budget = error_of(&keep)? + tolerance;
+    let mut by_mass: Vec<usize> = (0..slots.len()).collect();
+    by_mass.sort_by(|&a, &b| slots[a].mass.total_cmp(&slots[b].mass).then(a.cmp(&b)));
+    for k in by_mass {
+        keep[k] = false;
+        if error_of(&keep)? > budget {
+            keep[k] = true;
+        }
+    }
+    Ok(slots
+        .into_iter()
+        .zip(keep)
+        .filter(|(_, k)| *k)
+        .map(|(s, _)| s)
+        .collect())
+}

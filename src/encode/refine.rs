@@ -1,0 +1,705 @@
+//! Test-time refinement of slot latents: the encoder's slots are an amortised guess, made in one
+//! pass for any scene; a few Adam steps on the latents (and, gently, on the slot frames'
+//! origins; the model's weights fixed) then lower the input view's colour error for this
+//! scene. Only the input image is used, so novel views are still predictions; the decoder,
+//! trained on many views of many scenes, is the prior that keeps a refined latent a 3-D object
+//! (how far that holds is measured in `docs/refinement.md`).
+//!
+//! Each step renders a seeded random subset of the input view's pixels (all of them when the
+//! image has no more than `rays` pixels), so a step costs one training step's decoder pass on
+//! one view, and the result is the same for the same inputs.
+
+use crate::camera::Frame;
+use crate::image_io::RgbImage32;
+use super::latents_and_frames;
+use super::view::InputView;
+use crate::codes::Slot;
+use crate::metrics::psnr_from_mse;
+use crate::model::{Colf, ColfNet, RayBatch, SceneRays};
+use crate::optim::{Adam, AdamConfig};
+use anyhow::{bail, Context, Result};
+use candle_core::{Tensor, Var};
+use glam::{DMat4, DVec3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+/// How to refine (serialised as is into colf-eval's JSON, so a refined score says how it was
+/// made).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct RefineOptions {
+    /// Adam steps (0: no refinement).
+    pub steps: usize,
+    /// Adam's learning rate on the latents.
+    pub lr: f64,
+    /// Pixels rendered per step (all of them when the image has fewer).
+    pub rays: usize,
+    /// Weight of the pull toward the encoder's latents, λ·mean((z − z₀)²): keeps a latent near
+    /// what the decoder was trained on.
+    pub anchor_weight: f64,
+    /// Adam's learning rate on the slots' frame origins (world units; 0: frames fixed).
+    pub frame_lr: f64,
+    /// Seed of the pixel subsets.
+    pub seed: u64,
+}
+
+impl Default for RefineOptions {
+    fn default() -> Self {
+        RefineOptions {
+            steps: 0,
+            lr: 0.01,
+            rays: 1024,
+            anchor_weight: 0.0,
+            frame_lr: 0.003,
+            seed: 0,
+        }
+    }
+}
+
+/// What a refinement did: the input view's PSNR (on the rendered subsets) at the first and the
+/// last step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RefineReport {
+    pub steps: usize,
+    pub first_psnr: f64,
+    pub last_psnr: f64,
+}
+
+/// Refines `fg_latents` (and the background latent, unless the model fixes it to zero; and the
+/// frame origins in `slot_to_world` when `opts.frame_lr > 0`) so that the slots render `image`
+/// as seen by `camera`. Returns the report; the latents and frames are replaced only if every
+/// refined value is finite.
+///
+/// Frame origins enter the rays' encoding on the host (`RayBatch::new`), outside the autodiff
+/// graph; each step therefore linearises the encoding around the current origins (a forward
+/// difference of `FRAME_STEP` world units per axis) and takes the gradient through that
+/// linearisation, which at the current origins is the true gradient.
+pub fn refine_latents(
+    model: &Colf,
+    fg_latents: &mut [Vec<f32>],
+    bg_latent: &mut Vec<f32>,
+    slot_to_world: &mut [DMat4],
+    camera: &Frame,
+    image: &RgbImage32,
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
+    let view = InputView::new(camera, image);
+    refine_latents_on_views(model, fg_latents, bg_latent, slot_to_world, &[&view], opts)
+}
+
+/// Refines `slots` (latents and frames) and `background` against `views`, in place; see
+/// [`refine_latents`].
+pub fn refine_slots(
+    model: &Colf,
+    slots: &mut [Slot],
+    background: &mut Vec<f32>,
+    views: &[&InputView],
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
+    let (mut latents, mut frames) = latents_and_frames(slots);
+    let report =
+        refine_latents_on_views(model, &mut latents, background, &mut frames, views, opts)?;
+    for ((slot, latent), frame) in slots.iter_mut().zip(latents).zip(frames) {
+        slot.latent = latent;
+        slot.slot_to_world = frame;
+    }
+    Ok(report)
+}
+
+/// [`refine_latents`] against several views of the scene at once: each step draws its pixels
+/// from all of them.
+pub fn refine_latents_on_views(
+    model: &Colf,
+    fg_latents: &mut [Vec<f32>],
+    bg_latent: &mut Vec<f32>,
+    slot_to_world: &mut [DMat4],
+    views: &[&InputView],
+    opts: &RefineOptions,
+) -> Result<RefineReport> {
+    // 1. Options and model checked; nothing to do without steps or slots.
+    check(model, views, opts)?;
+    if opts.steps == 0 || fg_latents.is_empty() {
+        return Ok(RefineReport {
+            steps: 0,
+            first_psnr: f64::NAN,
+            last_psnr: f64::NAN,
+        });
+    }
+    // 2. The pixels of every view, which the steps draw from.
+    let pixels = Pixels::gather(views);
+    // 3. The variables (latents, frame offsets) and their optimisers.
+    let mut refinement = Refinement::new(model, fg_latents, bg_latent, slot_to_world)?;
+    // 4. The steps: a seeded draw of pixels, the decoder, Adam.
+    let n = pixels.origins.len();
+    let per_step = opts.rays.min(n);
+    let move_frames = opts.frame_lr > 0.0;
+    // Every pixel once and fixed frames: one batch for all steps.
+    let fixed = (per_step == n && !move_frames)
+        .then(|| pixels.batch(model, slot_to_world, None))
+        .transpose()?;
+    let mut rng = StdRng::seed_from_u64(opts.seed);
+    let (mut first, mut last) = (f64::NAN, f64::NAN);
+    for step in 0..opts.steps {
+        let drawn;
+        let (rays, target) = match &fixed {
+            Some(b) => (&b.0, &b.1),
+            None => {
+                let pick: Vec<usize> = if per_step == n {
+                    (0..n).collect()
+                } else {
+                    (0..per_step).map(|_| rng.random_range(0..n)).collect()
+                };
+                drawn = if move_frames {
+                    pixels.linearised_batch(model, &refinement.frames, &refinement.offset, &pick)?
+                } else {
+                    pixels.batch(model, &refinement.frames, Some(&pick))?
+                };
+                (&drawn.0, &drawn.1)
+            }
+        };
+        // A non-finite gradient: keep what the last good step gave.
+        let Some(mse) = refinement.step(rays, target, opts)? else {
+            break;
+        };
+        if step == 0 {
+            first = psnr_from_mse(mse.max(1e-12));
+        }
+        last = psnr_from_mse(mse.max(1e-12));
+    }
+    // 5. The result, kept only if every value is finite.
+    refinement.write_back(fg_latents, bg_latent, slot_to_world)?;
+    Ok(RefineReport {
+        steps: opts.steps,
+        first_psnr: first,
+        last_psnr: last,
+    })
+}
+
+/// Refuses options no refinement can use, and models it does not apply to.
+fn check(model: &Colf, views: &[&InputView], opts: &RefineOptions) -> Result<()> {
+    if !(opts.lr.is_finite() && opts.lr > 0.0 && opts.lr <= MAX_LEARNING_RATE) {
+        bail!(
+            "refinement learning rate must be in (0, {MAX_LEARNING_RATE}], not {}",
+            opts.lr
+        );
+    }
+    if !(opts.anchor_weight.is_finite() && opts.anchor_weight >= 0.0) {
+        bail!(
+            "refinement anchor weight must be a number ≥ 0, not {}",
+            opts.anchor_weight
+        );
+    }
+    if opts.rays == 0 {
+        bail!("refinement needs at least 1 ray a step");
+    }
+    if !(opts.frame_lr.is_finite() && opts.frame_lr >= 0.0 && opts.frame_lr <= MAX_LEARNING_RATE)
+    {
+        bail!(
+            "refinement frame learning rate must be in [0, {MAX_LEARNING_RATE}], not {}",
+            opts.frame_lr
+        );
+    }
+    if views.iter().all(|v| v.image.data.is_empty()) {
+        bail!("refinement needs at least one view with pixels");
+    }
+    if model.model().light_field().is_none() {
+        bail!("refinement applies to light-field models, not the volumetric baseline");
+    }
+    Ok(())
+}
+
+/// The largest learning rate refinement accepts: latents live in a unit-scale space, so a step
+/// far above 1 can only overflow.
+pub const MAX_LEARNING_RATE: f64 = 100.0;
+
+/// The rays and colours of every pixel of the views, in order.
+struct Pixels {
+    origins: Vec<DVec3>,
+    dirs: Vec<DVec3>,
+    rgb: Vec<f32>,
+}
+
+impl Pixels {
+    fn gather(views: &[&InputView]) -> Pixels {
+        let mut pixels = Pixels {
+            origins: Vec::new(),
+            dirs: Vec::new(),
+            rgb: Vec::new(),
+        };
+        for view in views {
+            pixels.origins.extend_from_slice(&view.origins);
+            pixels.dirs.extend_from_slice(&view.dirs);
+            pixels.rgb.extend_from_slice(&view.image.data);
+        }
+        pixels
+    }
+}
+
+/// The refined variables: the latents as candle `Var`s with Adam, and the frames on the host,
+/// moved by a zero-read offset `Var` with an Adam of its own.
+struct Refinement<'a> {
+    net: &'a ColfNet,
+    fg0: Tensor,
+    fg: Var,
+    bg: Var,
+    adam: Adam,
+    frames: Vec<DMat4>,
+    /// The frame origins' offsets from `frames` (foreground slots; axis-major [3, K]), always
+    /// zero when read: each step's update is moved into `frames`.
+    offset: Var,
+    frame_adam: Adam,
+}
+
+impl<'a> Refinement<'a> {
+    fn new(
+        model: &'a Colf,
+        fg_latents: &[Vec<f32>],
+        bg_latent: &[f32],
+        slot_to_world: &[DMat4],
+    ) -> Result<Refinement<'a>> {
+        let cfg = model.config();
+        let (k, d) = (fg_latents.len(), cfg.slot_dim);
+        let dev = model.device();
+        let fg0 = Tensor::from_vec(
+            fg_latents.iter().flatten().copied().collect::<Vec<f32>>(),
+            (1, k, d),
+            dev,
+        )?;
+        let fg = Var::from_tensor(&fg0)?;
+        let bg = Var::from_tensor(&Tensor::from_vec(bg_latent.to_vec(), (1, d), dev)?)?;
+        let mut params = vec![("fg".to_string(), fg.clone())];
+        if !cfg.zero_background {
+            params.push(("bg".to_string(), bg.clone()));
+        }
+        let unclipped = AdamConfig {
+            clip_norm: None,
+            ..AdamConfig::default()
+        };
+        let offset = Var::zeros((3, k), candle_core::DType::F32, dev)?;
+        Ok(Refinement {
+            net: model.model(),
+            fg0,
+            fg,
+            bg,
+            adam: Adam::new(params, unclipped)?,
+            frames: slot_to_world.to_vec(),
+            frame_adam: Adam::new(vec![("offset".to_string(), offset.clone())], unclipped)?,
+            offset,
+        })
+    }
+
+    /// One Adam step on `rays` against `target`: the step's colour MSE, or None when a
+    /// gradient was not finite (nothing was changed then).
+    fn step(
+        &mut self,
+        rays: &RayBatch,
+        target: &Tensor,
+        opts: &RefineOptions,
+    ) -> Result<Option<f64>> {
+        let fields = self.net.prepare(self.fg.as_tensor(), self.bg.as_tensor())?;
+        let decoded = self.net.decode(&fields, rays)?;
+        let mse = (&decoded.rgb - target)?.sqr()?.mean_all()?;
+        let mse_value = mse.to_scalar::<f32>()? as f64;
+        let mut loss = mse;
+        if opts.anchor_weight > 0.0 {
+            let pull = (self.fg.as_tensor() - &self.fg0)?.sqr()?.mean_all()?;
+            loss = (loss + (pull * opts.anchor_weight)?)?;
+        }
+        let grads = loss.backward()?;
+        if self.adam.step(&grads, opts.lr).is_err() {
+            return Ok(None);
+        }
+        if opts.frame_lr > 0.0 {
+            if self.frame_adam.step(&grads, opts.frame_lr).is_err() {
+                return Ok(None);
+            }
+            let moved = self.offset.as_tensor().to_vec2::<f32>()?;
+            for (slot, frame) in self.frames.iter_mut().enumerate() {
+                let delta = DVec3::new(
+                    moved[0][slot] as f64,
+                    moved[1][slot] as f64,
+                    moved[2][slot] as f64,
+                );
+                frame.w_axis += delta.extend(0.0);
+            }
+            self.offset.set(&self.offset.as_tensor().zeros_like()?)?;
+        }
+        Ok(Some(mse_value))
+    }
+
+    /// Writes the refined values back, if every one is finite.
+    fn write_back(
+        &self,
+        fg_latents: &mut [Vec<f32>],
+        bg_latent: &mut Vec<f32>,
+        slot_to_world: &mut [DMat4],
+    ) -> Result<()> {
+        let refined_fg = self.fg.as_tensor().squeeze(0)?.to_vec2::<f32>()?;
+        let refined_bg = self.bg.as_tensor().squeeze(0)?.to_vec1::<f32>()?;
+        let finite = refined_fg
+            .iter()
+            .flatten()
+            .chain(&refined_bg)
+            .all(|v| v.is_finite())
+            && self.frames.iter().all(|f| f.is_finite());
+        if finite {
+            slot_to_world.copy_from_slice(&self.frames);
+            for (dst, src) in fg_latents.iter_mut().zip(refined_fg) {
+                *dst = src;
+            }
+            *bg_latent = refined_bg;
+        }
+        Ok(())
+    }
+}
+
+/// Forward-difference step for the frame origins' linearisation (world units).
+const FRAME_STEP: f64 = 1e-3;
+
+impl Pixels {
+    /// The rays of the pixels `pick` encoded as a function of the foreground frame origins'
+    /// offsets `offset` [3, K] (zero at the call): coordinates and ordering shifts at `frames`, plus
+    /// their forward-difference derivatives along each world axis times the offsets, so gradients
+    /// reach `offset`. Returns the batch and the target colours [1, R, 3].
+    fn linearised_batch(
+        &self,
+        model: &Colf,
+        frames: &[DMat4],
+        offset: &Var,
+        pick: &[usize],
+    ) -> Result<(RayBatch, Tensor)> {
+        let (at, target) = self.batch(model, frames, Some(pick))?;
+        let (s, r) = (at.fields, at.rays);
+        let dev = model.device();
+        // Shifts before the per-ray base is subtracted, so batches at different origins compare.
+        let absolute = |b: &RayBatch| -> Result<Tensor> {
+            let base = Tensor::from_vec(
+                b.base.iter().map(|&v| v as f32).collect::<Vec<f32>>(),
+                (1, r, 1),
+                dev,
+            )?;
+            Ok(b.shift.broadcast_add(&base)?)
+        };
+        let shift_at = absolute(&at)?;
+        let mut coords = at.coords.clone();
+        let mut shadow_lines = at.shadow_lines.clone();
+        let mut shift = at.shift.clone();
+        // The background (field 0) never moves: its offset is a constant 0.
+        let zero = Tensor::zeros(1, candle_core::DType::F32, dev)?;
+        for axis in 0..3 {
+            let mut moved = frames.to_vec();
+            for f in moved.iter_mut() {
+                f.w_axis[axis] += FRAME_STEP;
+            }
+            let (ahead, _) = self.batch(model, &moved, Some(pick))?;
+            let per_field = Tensor::cat(&[&zero, &offset.as_tensor().get(axis)?], 0)?; // [S]
+            let per_line = per_field.reshape((s, 1, 1))?;
+            let d_coords = ((&ahead.coords - &at.coords)? / FRAME_STEP)?;
+            coords = (coords + d_coords.broadcast_mul(&per_line)?)?;
+            // Shadow lines move with the frames too (their ground mask does not).
+            if let (Some((lines, _)), Some((ahead_lines, _)), Some((at_lines, _))) =
+                (shadow_lines.as_mut(), &ahead.shadow_lines, &at.shadow_lines)
+            {
+                let d_lines = ((ahead_lines - at_lines)? / FRAME_STEP)?;
+                *lines = (&*lines + d_lines.broadcast_mul(&per_line)?)?;
+            }
+            let d_shift = ((absolute(&ahead)? - &shift_at)? / FRAME_STEP)?;
+            shift = (shift + d_shift.broadcast_mul(&per_field.reshape((1, 1, s))?)?)?;
+        }
+        Ok((
+            RayBatch {
+                coords,
+                shadow_lines,
+                shift,
+                base: at.base,
+                scenes: 1,
+                fields: s,
+                rays: r,
+            },
+            target,
+        ))
+    }
+
+    /// The encoded rays and target colours [1, R, 3] of the pixels `pick` (all when `None`).
+    fn batch(
+        &self,
+        model: &Colf,
+        slot_to_world: &[DMat4],
+        pick: Option<&[usize]>,
+    ) -> Result<(RayBatch, Tensor)> {
+        let (origins, dirs, rgb) = (&self.origins, &self.dirs, &self.rgb);
+        let all: Vec<usize>;
+        let pick = match pick {
+            Some(p) => p,
+            None => {
+                all = (0..origins.len()).collect();
+                &all
+            }
+        };
+        let o: Vec<DVec3> = pick.iter().map(|&p| origins[p]).collect();
+        let d: Vec<DVec3> = pick.iter().map(|&p| dirs[p]).collect();
+        let t: Vec<f32> = pick
+            .iter()
+            .flat_map(|&p| rgb[3 * p..3 * p + 3].iter().copied())
+            .collect();
+        let rays = RayBatch::new(
+            model.config(),
+            &[SceneRays {
+                slot_to_world,
+                origins: &o,
+                dirs: &d,
+            }],
+            model.device(),
+        )
+        .context("encoding the input view's rays")?;
+        let target = Tensor::from_vec(t, (1, pick.len(), 3), model.device())?;
+        Ok((rays, target))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{look_at, Intrinsics};
+    use crate::model::Config;
+
+    fn camera(size: u32) -> Frame {
+        Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(size, size, 49.13),
+            camera_to_world: look_at(DVec3::new(0.0, -8.0, 9.0), DVec3::ZERO, DVec3::Z).unwrap(),
+        }
+    }
+
+    fn latents(k: usize, d: usize, seed: u64) -> Vec<Vec<f32>> {
+        let mut rng = StdRng::seed_from_u64(seed);
+        (0..k)
+            .map(|_| (0..d).map(|_| rng.random_range(-1.5f32..1.5)).collect())
+            .collect()
+    }
+
+    /// A target the model can render exactly: its own image of latents `truth`.
+    fn target(model: &Colf, truth: &[Vec<f32>], bg: &[f32], cam: &Frame) -> RgbImage32 {
+        let frames = vec![cam.camera_to_world; truth.len()];
+        let prepared = model.prepare(truth, bg).unwrap();
+        let blank = RgbImage32 {
+            w: cam.intrinsics.w,
+            h: cam.intrinsics.h,
+            data: vec![0.0; 3 * (cam.intrinsics.w * cam.intrinsics.h) as usize],
+        };
+        let view = InputView::new(cam, &blank);
+        let out = model
+            .render_rays(&prepared, &frames, &view.origins, &view.dirs)
+            .unwrap();
+        RgbImage32 {
+            w: cam.intrinsics.w,
+            h: cam.intrinsics.h,
+            data: out.rgb,
+        }
+    }
+
+    #[test]
+    fn refinement_fits_the_input_view_and_is_deterministic() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(24);
+        let bg = vec![0.0; d];
+        let image = target(&model, &latents(3, d, 1), &bg, &cam);
+        let start = latents(3, d, 2);
+        let frames = vec![cam.camera_to_world; 3];
+        let opts = RefineOptions {
+            steps: 30,
+            lr: 0.05,
+            rays: 256,
+            ..Default::default()
+        };
+        let run = || {
+            let (mut fg, mut bg, mut frames) = (start.clone(), bg.clone(), frames.clone());
+            let report =
+                refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
+            (fg, bg, report)
+        };
+        let (fg, _, report) = run();
+        assert!(
+            report.last_psnr > report.first_psnr + 3.0,
+            "refinement should fit the view: {report:?}"
+        );
+        assert_ne!(fg, start);
+        assert_eq!(run().0, fg, "the same inputs give the same latents");
+    }
+
+    #[test]
+    fn refining_on_two_copies_of_a_view_is_refining_on_it() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(12);
+        let bg = vec![0.0; d];
+        let image = target(&model, &latents(2, d, 1), &bg, &cam);
+        // Every pixel each step and fixed frames: the loss is the same mean either way.
+        let opts = RefineOptions {
+            steps: 5,
+            lr: 0.05,
+            rays: 2 * 12 * 12,
+            frame_lr: 0.0,
+            ..Default::default()
+        };
+        let view = InputView::new(&cam, &image);
+        let run = |views: &[&InputView]| {
+            let (mut fg, mut bg, mut frames) =
+                (latents(2, d, 2), bg.clone(), vec![cam.camera_to_world; 2]);
+            refine_latents_on_views(&model, &mut fg, &mut bg, &mut frames, views, &opts).unwrap();
+            fg
+        };
+        let one = run(&[&view]);
+        let two = run(&[&view, &view]);
+        assert_ne!(one, latents(2, d, 2));
+        for (a, b) in one.iter().flatten().zip(two.iter().flatten()) {
+            assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+        }
+        let empty = RgbImage32 {
+            w: 0,
+            h: 0,
+            data: Vec::new(),
+        };
+        let (mut fg, mut bg, mut frames) = (latents(2, d, 2), bg.clone(), vec![DMat4::IDENTITY; 2]);
+        let empty_view = InputView::new(&cam, &empty);
+        for views in [&[][..], &[&empty_view][..]] {
+            let err = refine_latents_on_views(&model, &mut fg, &mut bg, &mut frames, views, &opts)
+                .unwrap_err();
+            assert!(err.to_string().contains("at least one view"), "{err}");
+        }
+    }
+
+    #[test]
+    fn no_steps_leave_the_latents_alone() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(16);
+        let (mut fg, mut bg) = (latents(2, d, 5), vec![0.5; d]);
+        let image = target(&model, &fg, &bg, &cam);
+        let before = (fg.clone(), bg.clone());
+        let mut frames = vec![cam.camera_to_world; 2];
+        let opts = RefineOptions::default();
+        let report =
+            refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
+        assert_eq!(report.steps, 0);
+        assert_eq!((fg, bg), before);
+    }
+
+    #[test]
+    fn a_zero_background_model_keeps_its_background() {
+        let mut cfg = Config::small();
+        cfg.zero_background = true;
+        let model = Colf::init(&cfg, 4).unwrap();
+        let d = cfg.slot_dim;
+        let cam = camera(16);
+        let (mut fg, mut bg) = (latents(2, d, 6), vec![0.0; d]);
+        let image = target(&model, &latents(2, d, 7), &bg, &cam);
+        let mut frames = vec![cam.camera_to_world; 2];
+        let opts = RefineOptions {
+            steps: 3,
+            ..Default::default()
+        };
+        refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).unwrap();
+        assert!(bg.iter().all(|&v| v == 0.0));
+    }
+
+    #[test]
+    fn bad_options_are_refused() {
+        let model = Colf::init(&Config::small(), 3).unwrap();
+        let d = model.config().slot_dim;
+        let cam = camera(8);
+        let (mut fg, mut bg) = (latents(1, d, 5), vec![0.0; d]);
+        let image = target(&model, &fg, &bg, &cam);
+        let mut frames = vec![cam.camera_to_world];
+        for opts in [
+            RefineOptions {
+                steps: 1,
+                lr: f64::NAN,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                lr: -1.0,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                rays: 0,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                anchor_weight: -1.0,
+                ..Default::default()
+            },
+            RefineOptions {
+                steps: 1,
+                frame_lr: f64::INFINITY,
+                ..Default::default()
+            },
+        ] {
+            assert!(
+                refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).is_err()
+            );
+        }
+    }
+
+    #[test]
+    fn frame_gradients_match_finite_differences_of_the_loss() {
+        let mut cfg = Config::small();
+        cfg.ray_fourier_freqs = 2;
+        cfg.fg_locality = 2.0;
+        cfg.attention_frames = true;
+        let model = Colf::init(&cfg, 8).unwrap();
+        let d = cfg.slot_dim;
+        let cam = camera(12);
+        let fg = latents(2, d, 9);
+        let bg = vec![0.1; d];
+        let image = target(&model, &latents(2, d, 10), &bg, &cam);
+        let mut frames = vec![cam.camera_to_world; 2];
+        frames[0].w_axis = glam::DVec4::new(0.5, -0.3, 0.2, 1.0);
+        frames[1].w_axis = glam::DVec4::new(-1.0, 0.4, 0.0, 1.0);
+        let pixels = Pixels::gather(&[&InputView::new(&cam, &image)]);
+        let pick: Vec<usize> = (0..pixels.origins.len()).collect();
+        let net = model.model();
+        let fg_t = Tensor::from_vec(fg.concat(), (1, 2, d), model.device()).unwrap();
+        let bg_t = Tensor::from_vec(bg.clone(), (1, d), model.device()).unwrap();
+        let fields = net.prepare(&fg_t, &bg_t).unwrap();
+        let loss_of = |rays: &RayBatch, target: &Tensor| {
+            let out = net.decode(&fields, rays).unwrap();
+            (&out.rgb - target)
+                .unwrap()
+                .sqr()
+                .unwrap()
+                .mean_all()
+                .unwrap()
+        };
+        let offset = Var::zeros((3, 2), candle_core::DType::F32, model.device()).unwrap();
+        let (rays, target) = pixels
+            .linearised_batch(&model, &frames, &offset, &pick)
+            .unwrap();
+        let grads = loss_of(&rays, &target).backward().unwrap();
+        let analytic = grads
+            .get(offset.as_tensor())
+            .unwrap()
+            .to_vec2::<f32>()
+            .unwrap();
+        let h = 1e-2;
+        for (axis, row) in analytic.iter().enumerate() {
+            for (slot, &g) in row.iter().enumerate() {
+                let eval = |sign: f64| {
+                    let mut moved = frames.clone();
+                    moved[slot].w_axis[axis] += sign * h;
+                    let (b, t) = pixels.batch(&model, &moved, Some(&pick)).unwrap();
+                    loss_of(&b, &t).to_scalar::<f32>().unwrap() as f64
+                };
+                let numeric = (eval(1.0) - eval(-1.0)) / (2.0 * h);
+                let scale = numeric.abs().max(g.abs() as f64).max(1e-4);
+                assert!(
+                    (numeric - g as f64).abs() / scale < 0.1,
+                    "axis {axis} slot {slot}: analytic {g} numeric {numeric}"
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,156 @@
+//! The input view: an image, its camera, and the world rays through its pixels, built once per
+//! encoding and read by every step (choosing between tries, refinement, the redundant-slot drop).
+
+use crate::camera::Frame;
+use crate::image_io::RgbImage32;
+use crate::model::Colf;
+use anyhow::Result;
+use glam::{DMat4, DVec3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+/// Pixels of the input view compared when judging encodings (a seeded subset when the image
+/// has more): enough to rank encodings, few enough that judging costs little next to encoding.
+const COMPARE_PIXELS: usize = 4096;
+
+/// An image seen by a camera, with the world ray of every pixel centre.
+pub struct InputView<'a> {
+    pub camera: &'a Frame,
+    pub image: &'a RgbImage32,
+    /// World rays through the pixel centres, row-major (scaled when the camera's intrinsics are
+    /// for another resolution than the image's).
+    pub origins: Vec<DVec3>,
+    pub dirs: Vec<DVec3>,
+    /// The pixels encodings are judged on.
+    pub compared: ComparedPixels,
+}
+
+impl<'a> InputView<'a> {
+    pub fn new(camera: &'a Frame, image: &'a RgbImage32) -> InputView<'a> {
+        let (w, h) = (image.w as usize, image.h as usize);
+        let sx = camera.intrinsics.w as f64 / w as f64;
+        let sy = camera.intrinsics.h as f64 / h as f64;
+        let mut origins = Vec::with_capacity(w * h);
+        let mut dirs = Vec::with_capacity(w * h);
+        for j in 0..h {
+            for i in 0..w {
+                let ray = camera.ray_at((i as f64 + 0.5) * sx, (j as f64 + 0.5) * sy);
+                origins.push(ray.origin);
+                dirs.push(ray.direction);
+            }
+        }
+        let compared = ComparedPixels::new(&origins, &dirs, &image.data);
+        InputView {
+            camera,
+            image,
+            origins,
+            dirs,
+            compared,
+        }
+    }
+
+    /// The mean squared colour error, on the compared pixels, of slots (`fg_latents` in frames
+    /// `slot_to_world`, and `bg_latent`) rendered by the model's reference (candle) path.
+    pub fn mse(
+        &self,
+        model: &Colf,
+        fg_latents: &[Vec<f32>],
+        bg_latent: &[f32],
+        slot_to_world: &[DMat4],
+    ) -> Result<f64> {
+        let prepared = model.prepare(fg_latents, bg_latent)?;
+        let out = model.render_rays(
+            &prepared,
+            slot_to_world,
+            &self.compared.origins,
+            &self.compared.dirs,
+        )?;
+        Ok(self.compared.mse(&out.rgb))
+    }
+}
+
+/// The pixels of an input view that encodings are judged on: all of them, or a fixed seeded
+/// subset of `COMPARE_PIXELS` (the same subset for every call on the same image).
+pub struct ComparedPixels {
+    /// World rays through the pixels.
+    pub origins: Vec<DVec3>,
+    pub dirs: Vec<DVec3>,
+    /// Their colours in the image, RGB.
+    target: Vec<f32>,
+}
+
+impl ComparedPixels {
+    fn new(origins: &[DVec3], dirs: &[DVec3], rgb: &[f32]) -> ComparedPixels {
+        let n = origins.len();
+        let pick: Vec<usize> = if n <= COMPARE_PIXELS {
+            (0..n).collect()
+        } else {
+            let mut rng = StdRng::seed_from_u64(0);
+            (0..COMPARE_PIXELS)
+                .map(|_| rng.random_range(0..n))
+                .collect()
+        };
+        ComparedPixels {
+            origins: pick.iter().map(|&p| origins[p]).collect(),
+            dirs: pick.iter().map(|&p| dirs[p]).collect(),
+            target: pick
+                .iter()
+                .flat_map(|&p| rgb[3 * p..3 * p + 3].iter().copied())
+                .collect(),
+        }
+    }
+
+    /// Mean squared colour error of `rgb` (RGB per compared pixel, in order).
+    pub fn mse(&self, rgb: &[f32]) -> f64 {
+        let sum: f64 = rgb
+            .iter()
+            .zip(&self.target)
+            .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+            .sum();
+        sum / self.target.len().max(1) as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+
+    fn image(size: u32) -> RgbImage32 {
+        RgbImage32 {
+            w: size,
+            h: size,
+            data: (0..3 * size * size).map(|i| (i % 7) as f32 / 7.0).collect(),
+        }
+    }
+
+    #[test]
+    fn rays_cover_every_pixel_and_small_images_are_compared_whole() {
+        let camera = Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(8, 8, 49.13),
+            camera_to_world: DMat4::IDENTITY,
+        };
+        let img = image(8);
+        let view = InputView::new(&camera, &img);
+        assert_eq!(view.origins.len(), 64);
+        assert!(view.dirs.iter().all(|d| (d.length() - 1.0).abs() < 1e-9));
+        assert_eq!(view.compared.origins.len(), 64);
+        // Its own colours have no error.
+        assert_eq!(view.compared.mse(&img.data), 0.0);
+    }
+
+    #[test]
+    fn large_images_are_compared_on_a_fixed_subset() {
+        let camera = Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(128, 128, 49.13),
+            camera_to_world: DMat4::IDENTITY,
+        };
+        let img = image(128);
+        let a = InputView::new(&camera, &img);
+        let b = InputView::new(&camera, &img);
+        assert_eq!(a.compared.origins.len(), COMPARE_PIXELS);
+        assert_eq!(a.compared.origins, b.compared.origins);
+    }
+}
