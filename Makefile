@@ -9,16 +9,31 @@ RELEASE := target/release
 BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 DEMO := out/demo
 
-.PHONY: all build test lint man demo model bench tradeoff install uninstall clean
+.PHONY: all build test pyenv lint man demo model bench tradeoff install uninstall clean
 
 all: build
 
 build:
 	$(CARGO) build --release
 
-# The test command of the README and of .ci/run.
-test:
-	$(CARGO) test --release
+# The Python the cross-checks run (tests/python/): a project-local virtual environment made
+# from tests/python/requirements.txt, remade when that file changes. Nothing is installed into
+# the system Python.
+PY_ENV := target/py
+PYTHON ?= python3
+$(PY_ENV)/.installed: tests/python/requirements.txt
+	@command -v $(PYTHON) >/dev/null || { echo "make: $(PYTHON) not found (install python3 and python3-venv)" >&2; exit 1; }
+	rm -rf $(PY_ENV)
+	$(PYTHON) -m venv $(PY_ENV) || { echo "make: '$(PYTHON) -m venv' failed (on Debian: apt-get install python3-venv)" >&2; exit 1; }
+	$(PY_ENV)/bin/pip install --quiet --disable-pip-version-check -r tests/python/requirements.txt
+	touch $@
+
+pyenv: $(PY_ENV)/.installed
+
+# The test command of the README and of .ci/run: the Rust suite, with the project's Python
+# first on PATH for the cross-checks.
+test: $(PY_ENV)/.installed
+	PATH="$(CURDIR)/$(PY_ENV)/bin:$$PATH" $(CARGO) test --release
 
 # Speed and memory on this machine: a table on stdout, target/bench/bench.json.
 bench: build

@@ -1,6 +1,6 @@
 //! A codes file written by Python's `safetensors` package is edited by every op of colf-edit and
 //! read back by Python with the contract's names, shapes and metadata (tests/python/).
-//! Needs `python3` with `numpy` and `safetensors` (`.ci/run` installs them).
+//! Needs `python3` with `numpy` and `safetensors` (`make test` installs them into target/py).
 
 use std::process::Command;
 
@@ -12,7 +12,7 @@ fn python_written_codes_survive_every_op() {
     match probe {
         Ok(o) if o.status.success() => {}
         _ => panic!(
-            "this test needs python3 with numpy and safetensors: pip install numpy safetensors"
+            "this test needs python3 with numpy and safetensors: run it through `make test`, which puts them in target/py"
         ),
     }
     let dir = tempfile::tempdir().unwrap();

@@ -140,7 +140,7 @@ fn encode_edit_render_as_files_is_deterministic_and_meets_the_contract() {
         .expect("python3");
     assert!(
         python.status.success(),
-        "OpenEXR check failed (pip install OpenEXR numpy): {}",
+        "OpenEXR check failed (run through `make test`, which installs OpenEXR and numpy in target/py): {}",
         String::from_utf8_lossy(&python.stderr)
     );
 }
