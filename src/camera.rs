@@ -1,7 +1,7 @@
 //! Cameras and rays.
 //!
-//! colf reads cameras in the NeRF / nerfstudio `transforms.json` convention (contract in
-//! DESIGN.md): `transform_matrix` is camera-to-world, row-major, OpenGL camera axes (+X right,
+//! colf reads cameras in the NeRF / nerfstudio `transforms.json` convention (the contract in
+//! `docs/formats.md`): `transform_matrix` is camera-to-world, row-major, OpenGL camera axes (+X right,
 //! +Y up, looking along −Z); world is right-handed with +Z up; pixel (column i, row j) is sampled
 //! through its centre (i + 0.5, j + 0.5), row 0 at the top. The uORF `*_RT.txt` layout (OpenCV
 //! camera axes: +X right, +Y down, looking along +Z) is converted on reading.

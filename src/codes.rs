@@ -1,4 +1,4 @@
-//! The slot codes file (contract in DESIGN.md): a safetensors file holding an encoded scene.
+//! The slot codes file (its contract: `docs/formats.md`): a safetensors file holding an encoded scene.
 //!
 //! | tensor | shape | meaning |
 //! | --- | --- | --- |

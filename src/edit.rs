@@ -1,4 +1,4 @@
-//! The edit language of `colf-edit` (contract in DESIGN.md): a JSON list of ops applied in
+//! The edit language of `colf-edit` (its contract: `docs/formats.md`): a JSON list of ops applied in
 //! order to a codes file. Slot indices refer to the slots as they stand when the op runs.
 //!
 //! Parsing is separate from applying, and both report the op's index and the offending field,

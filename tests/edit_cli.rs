@@ -1,9 +1,11 @@
 //! CLI tests of `colf-edit`: the real binary, real files, pipes and failure paths.
 
+mod common;
+
 use assert_cmd::Command;
 use colf::codes::{Codes, Slot};
+use common::{fails_with, write};
 use glam::{DMat4, DVec3};
-use std::path::Path;
 
 fn sample(k: usize, model: &str) -> Codes {
     Codes {
@@ -22,27 +24,6 @@ fn sample(k: usize, model: &str) -> Codes {
 
 fn edit() -> Command {
     Command::cargo_bin("colf-edit").unwrap()
-}
-
-fn write(dir: &Path, name: &str, bytes: &[u8]) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, bytes).unwrap();
-    p.to_str().unwrap().to_string()
-}
-
-/// Runs and checks the one-line error contract; returns the line.
-fn fails_with(cmd: &mut Command, code: i32, needle: &str) -> String {
-    let out = cmd.output().unwrap();
-    assert_eq!(out.status.code(), Some(code), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
-    assert!(err.contains(needle), "stderr `{err}` lacks `{needle}`");
-    if code == 1 {
-        assert_eq!(err.trim_end().lines().count(), 1, "not one line: {err}");
-        assert!(err.starts_with("colf-edit: error: "), "{err}");
-        assert!(!err.contains("panicked"), "{err}");
-    }
-    assert!(out.stdout.is_empty(), "data written on failure");
-    err
 }
 
 #[test]
@@ -123,7 +104,12 @@ fn bad_edits_write_nothing_and_keep_existing_output() {
     ];
     for (text, needle) in cases {
         let edits = write(dir.path(), "e.json", text);
-        fails_with(edit().args([&edits, &codes, "-o"]).arg(&out), 1, needle);
+        fails_with(
+            edit().args([&edits, &codes, "-o"]).arg(&out),
+            "edit",
+            1,
+            needle,
+        );
         assert_eq!(std::fs::read(&out).unwrap(), b"precious");
     }
     let names: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
@@ -152,11 +138,17 @@ fn bad_codes_are_one_line_errors() {
         ),
     ] {
         let out = dir.path().join("o.codes");
-        fails_with(edit().args([&edits, path, "-o"]).arg(&out), 1, needle);
+        fails_with(
+            edit().args([&edits, path, "-o"]).arg(&out),
+            "edit",
+            1,
+            needle,
+        );
         assert!(!out.exists());
     }
     fails_with(
         edit().args([&edits, "/no/such/file.codes", "-o", "x"]),
+        "edit",
         1,
         "/no/such/file.codes: cannot read",
     );
@@ -164,6 +156,11 @@ fn bad_codes_are_one_line_errors() {
 
 #[test]
 fn usage_errors_exit_2() {
-    fails_with(edit().arg("--bogus"), 2, "--bogus");
-    fails_with(edit().args(["a", "b", "c"]), 2, "unexpected argument");
+    fails_with(edit().arg("--bogus"), "edit", 2, "--bogus");
+    fails_with(
+        edit().args(["a", "b", "c"]),
+        "edit",
+        2,
+        "unexpected argument",
+    );
 }

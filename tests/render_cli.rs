@@ -1,22 +1,15 @@
 //! CLI tests of colf-encode, colf-render and colf-cameras on the bundled default model: pipes,
 //! files, determinism, contracts of the outputs, and failure paths.
 
-use assert_cmd::Command;
-use colf::codes::Codes;
-use std::path::{Path, PathBuf};
+mod common;
 
-fn bin(name: &str) -> Command {
-    Command::cargo_bin(name).unwrap()
-}
+use colf::codes::Codes;
+use common::{bin, one_line_error, synth_scene};
+use std::path::{Path, PathBuf};
 
 /// A one-scene synthetic dataset (64², 4 views) in `dir`; returns the scene folder.
 fn scene(dir: &Path) -> PathBuf {
-    bin("colf-synth")
-        .args(["--scenes", "1", "--seed", "5", "-q", "--out"])
-        .arg(dir.join("data"))
-        .assert()
-        .success();
-    dir.join("data/scene_00000")
+    synth_scene(dir, &["--seed", "5"])
 }
 
 fn encode(scene: &Path, out: &Path) {
@@ -34,14 +27,6 @@ fn encode_with(scene: &Path, out: &Path, flags: &[&str]) {
         .arg(out)
         .assert()
         .success();
-}
-
-fn one_line_error(out: &std::process::Output, stage: &str, needle: &str) {
-    assert_eq!(out.status.code(), Some(1), "{out:?}");
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
-    assert!(err.starts_with(&format!("colf-{stage}: error: ")), "{err}");
-    assert!(err.contains(needle), "`{err}` lacks `{needle}`");
 }
 
 #[test]

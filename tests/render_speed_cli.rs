@@ -1,30 +1,13 @@
 //! CLI tests of colf-render's speed options: `--adaptive [EPS]`, `--no-shadows`, and the volumetric baseline
 //! (`colf-train init --preset volumetric`, `--samples N`) through encode | render.
 
-use assert_cmd::Command;
+mod common;
+
+use common::{bin, one_line_error, synth_scene};
 use std::path::{Path, PathBuf};
 
-fn bin(name: &str) -> Command {
-    Command::cargo_bin(name).unwrap()
-}
-
 fn scene(dir: &Path) -> PathBuf {
-    bin("colf-synth")
-        .args([
-            "--scenes", "1", "--seed", "11", "-q", "--split", "test", "--out",
-        ])
-        .arg(dir.join("data"))
-        .assert()
-        .success();
-    dir.join("data/scene_00000")
-}
-
-fn one_line_error(out: &std::process::Output, needle: &str) {
-    assert_eq!(out.status.code(), Some(1), "{out:?}");
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
-    assert!(err.starts_with("colf-render: error: "), "{err}");
-    assert!(err.contains(needle), "`{err}` lacks `{needle}`");
+    synth_scene(dir, &["--seed", "11", "--split", "test"])
 }
 
 fn render(codes: &Path, cams: &Path, out: &Path, extra: &[&str]) -> std::process::Output {
@@ -92,12 +75,17 @@ fn adaptive_renders_deterministically_and_a_large_eps_leaves_only_the_background
     // Bad values: one line, exit 1, no output folder.
     for bad in ["nan", "inf"] {
         let out = dir.path().join(format!("bad_{bad}"));
-        one_line_error(&render(&codes, &cams, &out, &["--adaptive", bad]), "ε");
+        one_line_error(
+            &render(&codes, &cams, &out, &["--adaptive", bad]),
+            "render",
+            "ε",
+        );
         assert!(!out.exists());
     }
     let out = dir.path().join("bad_samples");
     one_line_error(
         &render(&codes, &cams, &out, &["--samples", "16"]),
+        "render",
         "volumetric models only",
     );
     assert!(!out.exists());
@@ -160,10 +148,12 @@ fn a_volumetric_model_encodes_and_renders_end_to_end() {
     let out = dir.path().join("bad");
     one_line_error(
         &render(&codes, &cams, &out, &["--model", m, "--adaptive"]),
+        "render",
         "light-field models only",
     );
     one_line_error(
         &render(&codes, &cams, &out, &["--model", m, "--samples", "0"]),
+        "render",
         "--samples",
     );
     assert!(!out.exists());

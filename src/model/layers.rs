@@ -1,5 +1,5 @@
 //! Small building blocks shared by the modules, written only with ops that have a backward
-//! (CANDLE-NOTES: the fused layer norm records no gradient).
+//! (candle 0.11's fused layer norm records no gradient, so norms here are composed of plain ops).
 
 use super::fused::{dense, Activation};
 use candle_core::{Module, Result, Tensor};

@@ -2,7 +2,7 @@
 //!
 //! A light field is an MLP whose weights come from a hypernetwork (see `hypernet.rs`). All S
 //! slots' MLPs run as batched matmuls x [S, R, in] · W [S, in, out] — as fast as one big matmul
-//! on this CPU, where a per-slot loop is 2–3× slower (CANDLE-NOTES). The generated weights are
+//! on this CPU, where a per-slot loop measured 2–3× slower. The generated weights are
 //! computed once per slot ([`SlotWeights`]) and reused for any number of rays, views and chunks;
 //! the authors' code re-ran the hypernetworks for every (slot, view) pair.
 
