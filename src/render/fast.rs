@@ -486,7 +486,9 @@ impl FastRenderer {
         Ok(out)
     }
 
-    /// One chunk of light-field rays; see the module documentation.
+    /// One chunk of light-field rays, in three stages: every field's light field and heads
+    /// ([`Self::lf_field`]), the compositor's scores ([`Self::lf_scores`]), and the shadows and
+    /// softmax that give the outputs ([`Self::lf_composite`]). See the module documentation.
     fn lf_chunk(
         &self,
         lf: &LightFieldHost,
@@ -496,15 +498,8 @@ impl FastRenderer {
         active: Option<&[bool]>,
         out: ChunkOut,
     ) -> Result<()> {
-        let ChunkOut {
-            rgb,
-            weights,
-            ordering,
-            shadow,
-        } = out;
         let s = self.fields();
         let n = origins.len();
-        let in_dim = lf.in_dim;
         let width = lf.max_width();
         grow(&mut sc.a, n * width);
         grow(&mut sc.b, n * width);
@@ -513,7 +508,6 @@ impl FastRenderer {
         grow(&mut sc.order, n * s);
         grow(&mut sc.world, n * s);
         grow(&mut sc.score, n * s);
-        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
         // The ordering shifts (and their per-ray base) by the code the candle path uses
         // (`RayBatch`, with Fourier features off: only the shifts are used from it), so the two
         // cannot drift apart; ray coordinates below, for the rays a field is evaluated on only.
@@ -528,73 +522,105 @@ impl FastRenderer {
         )?;
         sc.shift = rays.shift.flatten_all()?.to_vec1::<f32>()?; // [n, S]
         sc.base = rays.base;
-        let h2 = lf.head_first.output;
         for si in 0..s {
-            sc.rows.clear();
-            sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
-            let m = sc.rows.len();
-            if m == 0 {
-                continue;
-            }
-            // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
-            let inv = &self.inverses[si];
-            for (j, &ri) in sc.rows.iter().enumerate() {
-                let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-                encode_line(out, inv, origins[ri], dirs[ri], lf.scene_scale, lf.freqs);
-            }
-            let x_w = lf.run_field(si, m, sc);
-            // Shadow density of a foreground slot, as `ShadowHead`: from the features of the
-            // rays (in a), or of their shadow lines (`shadow_light`).
-            if let (Some(sh), true) = (&lf.shadow, si > 0) {
-                match sh.to_light {
-                    None => {
-                        for (j, &ri) in sc.rows.iter().enumerate() {
-                            shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
-                        }
-                    }
-                    Some(to_light) => {
-                        // Lines go through c (the features in a stay for the heads).
-                        sc.lit_rows.clear();
-                        for &ri in &sc.rows {
-                            if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
-                                let j = sc.lit_rows.len();
-                                let out = &mut sc.c[j * in_dim..(j + 1) * in_dim];
-                                encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
-                                sc.lit_rows.push(ri);
-                            }
-                        }
-                        std::mem::swap(&mut sc.a, &mut sc.c);
-                        let x_w = lf.run_field(si, sc.lit_rows.len(), sc);
-                        for (j, &ri) in sc.lit_rows.iter().enumerate() {
-                            shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
-                        }
-                        std::mem::swap(&mut sc.a, &mut sc.c);
+            self.lf_field(lf, sc, si, origins, dirs, active, out.shadow)?;
+        }
+        self.lf_scores(lf, sc, n, active);
+        self.lf_composite(lf, sc, n, active, out);
+        Ok(())
+    }
+
+    /// Stage 1 of [`Self::lf_chunk`]: field `si`'s light field on the rays it is active on —
+    /// colours and orderings into `sc`, and for a foreground slot with a shadow head its shadow
+    /// density into `shadow`.
+    #[allow(clippy::too_many_arguments)]
+    fn lf_field(
+        &self,
+        lf: &LightFieldHost,
+        sc: &mut Scratch,
+        si: usize,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        active: Option<&[bool]>,
+        shadow: &mut [f32],
+    ) -> Result<()> {
+        let s = self.fields();
+        let n = origins.len();
+        let in_dim = lf.in_dim;
+        let h2 = lf.head_first.output;
+        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
+        sc.rows.clear();
+        sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
+        let m = sc.rows.len();
+        if m == 0 {
+            return Ok(());
+        }
+        // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
+        let inv = &self.inverses[si];
+        for (j, &ri) in sc.rows.iter().enumerate() {
+            let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
+            encode_line(out, inv, origins[ri], dirs[ri], lf.scene_scale, lf.freqs);
+        }
+        let x_w = lf.run_field(si, m, sc);
+        // Shadow density of a foreground slot, as `ShadowHead`: from the features of the
+        // rays (in a), or of their shadow lines (`shadow_light`).
+        if let (Some(sh), true) = (&lf.shadow, si > 0) {
+            match sh.to_light {
+                None => {
+                    for (j, &ri) in sc.rows.iter().enumerate() {
+                        shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
                     }
                 }
-            }
-            // Heads (features in a).
-            lf.head_first
-                .run(&sc.a, x_w, m, &mut sc.b, h2, lf.head_out.is_some());
-            std::mem::swap(&mut sc.a, &mut sc.b);
-            for (c, o) in &lf.head_mid {
-                let hh = c.input;
-                c.run(&sc.a, h2, m, &mut sc.b, h2, true);
-                o.run(&sc.a[hh..], h2, m, &mut sc.b[hh..], h2, true);
-                std::mem::swap(&mut sc.a, &mut sc.b);
-            }
-            if let Some(out) = &lf.head_out {
-                out.run(&sc.a, h2, m, &mut sc.b, 4, false);
-                std::mem::swap(&mut sc.a, &mut sc.b);
-            }
-            for (j, &ri) in sc.rows.iter().enumerate() {
-                let v = &sc.a[j * 4..j * 4 + 4];
-                let at = ri * s + si;
-                for c in 0..3 {
-                    sc.colors[at * 3 + c] = sigmoid(v[c]);
+                Some(to_light) => {
+                    // Lines go through c (the features in a stay for the heads).
+                    sc.lit_rows.clear();
+                    for &ri in &sc.rows {
+                        if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
+                            let j = sc.lit_rows.len();
+                            let out = &mut sc.c[j * in_dim..(j + 1) * in_dim];
+                            encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
+                            sc.lit_rows.push(ri);
+                        }
+                    }
+                    std::mem::swap(&mut sc.a, &mut sc.c);
+                    let x_w = lf.run_field(si, sc.lit_rows.len(), sc);
+                    for (j, &ri) in sc.lit_rows.iter().enumerate() {
+                        shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
+                    }
+                    std::mem::swap(&mut sc.a, &mut sc.c);
                 }
-                sc.order[at] = v[3];
             }
         }
+        // Heads (features in a).
+        lf.head_first
+            .run(&sc.a, x_w, m, &mut sc.b, h2, lf.head_out.is_some());
+        std::mem::swap(&mut sc.a, &mut sc.b);
+        for (c, o) in &lf.head_mid {
+            let hh = c.input;
+            c.run(&sc.a, h2, m, &mut sc.b, h2, true);
+            o.run(&sc.a[hh..], h2, m, &mut sc.b[hh..], h2, true);
+            std::mem::swap(&mut sc.a, &mut sc.b);
+        }
+        if let Some(out) = &lf.head_out {
+            out.run(&sc.a, h2, m, &mut sc.b, 4, false);
+            std::mem::swap(&mut sc.a, &mut sc.b);
+        }
+        for (j, &ri) in sc.rows.iter().enumerate() {
+            let v = &sc.a[j * 4..j * 4 + 4];
+            let at = ri * s + si;
+            for c in 0..3 {
+                sc.colors[at * 3 + c] = sigmoid(v[c]);
+            }
+            sc.order[at] = v[3];
+        }
+        Ok(())
+    }
+
+    /// Stage 2 of [`Self::lf_chunk`]: the compositor's score of every active field on every
+    /// ray (learned − prior) into `sc.score`, from world-comparable orderings.
+    fn lf_scores(&self, lf: &LightFieldHost, sc: &mut Scratch, n: usize, active: Option<&[bool]>) {
+        let s = self.fields();
+        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
         // Compositor: world-comparable orderings, the front one, V's inputs.
         let scale = lf.scene_scale as f32;
         for ri in 0..n {
@@ -644,6 +670,26 @@ impl FastRenderer {
             sc.c = y;
             sc.b = x;
         }
+    }
+
+    /// Stage 3 of [`Self::lf_chunk`]: shadows darken the background, then a max-subtracted
+    /// softmax over the active fields gives the weights, the colour and the orderings.
+    fn lf_composite(
+        &self,
+        lf: &LightFieldHost,
+        sc: &mut Scratch,
+        n: usize,
+        active: Option<&[bool]>,
+        out: ChunkOut,
+    ) {
+        let ChunkOut {
+            rgb,
+            weights,
+            ordering,
+            shadow,
+        } = out;
+        let s = self.fields();
+        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
         // The shadows the evaluated foreground slots cast darken the background's colour.
         if lf.shadow.is_some() {
             for ri in 0..n {
@@ -687,7 +733,6 @@ impl FastRenderer {
             }
             rgb[ri * 3..ri * 3 + 3].copy_from_slice(&col);
         }
-        Ok(())
     }
 
     /// One chunk of volumetric rays; see `model/volumetric.rs`.
