@@ -735,7 +735,9 @@ impl FastRenderer {
         }
     }
 
-    /// One chunk of volumetric rays; see `model/volumetric.rs`.
+    /// One chunk of volumetric rays, in two stages: every field's density and colour at the
+    /// samples ([`Self::vol_field`]), then alpha compositing along each ray
+    /// ([`Self::vol_composite`]). See `model/volumetric.rs`.
     #[allow(clippy::too_many_arguments)]
     fn vol_chunk(
         &self,
@@ -765,58 +767,95 @@ impl FastRenderer {
             .map(|i| vol.near + (i as f64 + 0.5) * delta)
             .collect();
         for si in 0..s {
-            let (net, biases) = if si == 0 {
-                (&vol.bg, &vol.slot_bias[0])
-            } else {
-                (&vol.fg, &vol.slot_bias[si])
-            };
-            // γ(p) into columns W … W + E of c (the skip layer's [h, γ(p)]) and into a.
-            let inv = &self.inverses[si];
-            for ri in 0..n {
-                let d = dirs[ri].normalize();
-                for (k, t) in depths.iter().enumerate() {
-                    let p = inv.transform_point3(origins[ri] + *t * d) / vol.scene_scale;
-                    let row = ri * n_samples + k;
-                    crate::model::volumetric::encode_point(
-                        [p.x, p.y, p.z],
-                        vol.pos_freqs,
-                        &mut sc.c[row * he + w..(row + 1) * he],
-                    );
-                    sc.a[row * e..(row + 1) * e]
-                        .copy_from_slice(&sc.c[row * he + w..(row + 1) * he]);
-                }
-            }
-            // Layers before the skip; the last writes into c's first W columns.
-            let before = vol.before;
-            let mut x_w = e;
-            for li in 0..before {
-                let layer = &net.layers[li];
-                let bias = if li == 0 { &biases.0 } else { &layer.b };
-                if li + 1 == before {
-                    layer.run_bias(&sc.a, x_w, m, &mut sc.c, he, true, bias);
-                } else {
-                    layer.run_bias(&sc.a, x_w, m, &mut sc.b, w, true, bias);
-                    std::mem::swap(&mut sc.a, &mut sc.b);
-                }
-                x_w = w;
-            }
-            // The skip layer on [h, γ(p)] (z folded into its bias), then the rest.
-            net.layers[before].run_bias(&sc.c, he, m, &mut sc.a, w, true, &biases.1);
-            for layer in &net.layers[before + 1..] {
-                layer.run(&sc.a, w, m, &mut sc.b, w, true);
-                std::mem::swap(&mut sc.a, &mut sc.b);
-            }
-            // Density and colour hidden in one product (both ReLU), then the colour output.
-            net.head.run(&sc.a, w, m, &mut sc.b, heads, true);
-            net.color_out.run(&sc.b[1..], heads, m, &mut sc.a, 3, false);
-            for i in 0..m {
-                sc.sigma[si * m + i] = sc.b[i * heads];
-                for c in 0..3 {
-                    sc.colors[(si * m + i) * 3 + c] = sigmoid(sc.a[i * 3 + c]);
-                }
+            self.vol_field(vol, sc, si, origins, dirs, &depths);
+        }
+        self.vol_composite(vol, sc, n, &depths, delta, rgb, weights, ordering);
+    }
+
+    /// Stage 1 of [`Self::vol_chunk`]: field `si`'s density and colour at every sample of every
+    /// ray (`depths` along it), into `sc.sigma` and `sc.colors`.
+    fn vol_field(
+        &self,
+        vol: &VolumetricHost,
+        sc: &mut Scratch,
+        si: usize,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        depths: &[f64],
+    ) {
+        let n = origins.len();
+        let n_samples = depths.len();
+        let m = n * n_samples;
+        let (w, e) = (vol.hidden, vol.pos_dim);
+        let he = w + e;
+        let heads = vol.bg.head.output;
+        let (net, biases) = if si == 0 {
+            (&vol.bg, &vol.slot_bias[0])
+        } else {
+            (&vol.fg, &vol.slot_bias[si])
+        };
+        // γ(p) into columns W … W + E of c (the skip layer's [h, γ(p)]) and into a.
+        let inv = &self.inverses[si];
+        for ri in 0..n {
+            let d = dirs[ri].normalize();
+            for (k, t) in depths.iter().enumerate() {
+                let p = inv.transform_point3(origins[ri] + *t * d) / vol.scene_scale;
+                let row = ri * n_samples + k;
+                crate::model::volumetric::encode_point(
+                    [p.x, p.y, p.z],
+                    vol.pos_freqs,
+                    &mut sc.c[row * he + w..(row + 1) * he],
+                );
+                sc.a[row * e..(row + 1) * e].copy_from_slice(&sc.c[row * he + w..(row + 1) * he]);
             }
         }
-        // Density-weighted slots, alpha compositing along each ray.
+        // Layers before the skip; the last writes into c's first W columns.
+        let before = vol.before;
+        let mut x_w = e;
+        for li in 0..before {
+            let layer = &net.layers[li];
+            let bias = if li == 0 { &biases.0 } else { &layer.b };
+            if li + 1 == before {
+                layer.run_bias(&sc.a, x_w, m, &mut sc.c, he, true, bias);
+            } else {
+                layer.run_bias(&sc.a, x_w, m, &mut sc.b, w, true, bias);
+                std::mem::swap(&mut sc.a, &mut sc.b);
+            }
+            x_w = w;
+        }
+        // The skip layer on [h, γ(p)] (z folded into its bias), then the rest.
+        net.layers[before].run_bias(&sc.c, he, m, &mut sc.a, w, true, &biases.1);
+        for layer in &net.layers[before + 1..] {
+            layer.run(&sc.a, w, m, &mut sc.b, w, true);
+            std::mem::swap(&mut sc.a, &mut sc.b);
+        }
+        // Density and colour hidden in one product (both ReLU), then the colour output.
+        net.head.run(&sc.a, w, m, &mut sc.b, heads, true);
+        net.color_out.run(&sc.b[1..], heads, m, &mut sc.a, 3, false);
+        for i in 0..m {
+            sc.sigma[si * m + i] = sc.b[i * heads];
+            for c in 0..3 {
+                sc.colors[(si * m + i) * 3 + c] = sigmoid(sc.a[i * 3 + c]);
+            }
+        }
+    }
+
+    /// Stage 2 of [`Self::vol_chunk`]: density-weighted slots, alpha compositing along each ray.
+    #[allow(clippy::too_many_arguments)]
+    fn vol_composite(
+        &self,
+        vol: &VolumetricHost,
+        sc: &Scratch,
+        n: usize,
+        depths: &[f64],
+        delta: f64,
+        rgb: &mut [f32],
+        weights: &mut [f32],
+        ordering: &mut [f32],
+    ) {
+        let s = self.fields();
+        let n_samples = depths.len();
+        let m = n * n_samples;
         for ri in 0..n {
             let mut optical = 0f64;
             let mut col = [0f64; 3];
