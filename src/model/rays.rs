@@ -155,26 +155,10 @@ pub fn world_to_slot(slot_to_world: &[DMat4]) -> Result<Vec<DMat4>> {
 impl RayBatch {
     /// Encodes the rays of `scenes` (all with the same K and R).
     pub fn new(cfg: &Config, scenes: &[SceneRays], dev: &Device) -> Result<RayBatch> {
-        let b = scenes.len();
-        if b == 0 {
-            bail!("no scenes to render");
-        }
-        let k = scenes[0].slot_to_world.len();
-        let r = scenes[0].origins.len();
-        if scenes
-            .iter()
-            .any(|s| s.slot_to_world.len() != k || s.origins.len() != r)
-        {
-            bail!("scenes of one batch must have the same number of slots and rays");
-        }
-        if r == 0 {
-            bail!("no rays to render");
-        }
+        // 1. Sizes: every scene of a batch has the same slots and rays.
+        let (b, k, r) = batch_shape(scenes)?;
         let s = 1 + k;
         let in_dim = cfg.ray_input_dim();
-        let freqs = cfg.ray_fourier_freqs;
-        let scale = cfg.scene_scale;
-        let locality = cfg.fg_locality;
         let mut coords = vec![0f32; b * s * r * in_dim];
         let mut shift = vec![0f32; b * r * s];
         let mut base = vec![0f64; b * r];
@@ -182,28 +166,23 @@ impl RayBatch {
             .shadow_light
             .map(|_| (vec![0f32; b * s * r * in_dim], vec![0f32; b * r]));
         for (bi, scene) in scenes.iter().enumerate() {
+            // 2. Each field's frame: the background's is the world.
             let inverses = check(bi, scene)?;
             let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
             for (inv, m) in inverses.iter().zip(scene.slot_to_world) {
                 frames.push((*inv, m.w_axis.truncate()));
             }
-            let scene_coords = &mut coords[bi * s * r * in_dim..(bi + 1) * s * r * in_dim];
-            let encode_all = |dest: &mut [f32], lines: &[(DVec3, DVec3)]| {
-                dest.par_chunks_mut(r * in_dim)
-                    .zip(frames.par_iter())
-                    .for_each(|(field, (inv, _))| {
-                        for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
-                            encode_line(out, inv, *o, *d, scale, freqs);
-                        }
-                    });
-            };
+            // 3. The camera rays in each field's frame.
+            let per_scene = s * r * in_dim;
             let camera_lines: Vec<(DVec3, DVec3)> = scene
                 .origins
                 .iter()
                 .copied()
                 .zip(scene.dirs.iter().copied())
                 .collect();
-            encode_all(scene_coords, &camera_lines);
+            let scene_coords = &mut coords[bi * per_scene..(bi + 1) * per_scene];
+            encode_fields(cfg, scene_coords, &frames, &camera_lines);
+            // 4. With shadows, the rays' shadow lines the same way.
             if let Some((shadow_coords, on_ground)) = shadow.as_mut() {
                 let to_light = light_direction(cfg.shadow_light.expect("shadow buffers"));
                 // Rays that miss the ground keep their own line (any finite line): masked.
@@ -218,33 +197,13 @@ impl RayBatch {
                         None => (o, d),
                     })
                     .collect();
-                encode_all(
-                    &mut shadow_coords[bi * s * r * in_dim..(bi + 1) * s * r * in_dim],
-                    &lines,
-                );
+                let scene_lines = &mut shadow_coords[bi * per_scene..(bi + 1) * per_scene];
+                encode_fields(cfg, scene_lines, &frames, &lines);
             }
-            for ri in 0..r {
-                let o = scene.origins[ri];
-                let d = scene.dirs[ri].normalize();
-                let shifts: Vec<f64> = frames
-                    .iter()
-                    .enumerate()
-                    .map(|(si, (_, t))| {
-                        let along = (*t - o).dot(d);
-                        if si == 0 || locality == 0.0 {
-                            return along;
-                        }
-                        // Locality bound: ρ = the ray's distance from the slot's frame
-                        // origin; the slot is pushed back by ρ²/r.
-                        let rho_sq = ((*t - o) - along * d).length_squared();
-                        along + rho_sq / locality
-                    })
-                    .collect();
-                let lo = shifts.iter().copied().fold(f64::INFINITY, f64::min);
-                base[bi * r + ri] = lo;
-                for (si, v) in shifts.iter().enumerate() {
-                    shift[(bi * r + ri) * s + si] = (v - lo) as f32;
-                }
+            // 5. The ordering shifts that make slots in different frames comparable.
+            for (ri, &(o, d)) in camera_lines.iter().enumerate() {
+                let row = &mut shift[(bi * r + ri) * s..(bi * r + ri + 1) * s];
+                base[bi * r + ri] = ordering_shifts(&frames, o, d, cfg.fg_locality, row);
             }
         }
         let shadow_lines = match shadow {
@@ -264,6 +223,73 @@ impl RayBatch {
             rays: r,
         })
     }
+}
+
+/// A batch's scenes, slots and rays, refused unless every scene has the same (and some rays).
+fn batch_shape(scenes: &[SceneRays]) -> Result<(usize, usize, usize)> {
+    let Some(first) = scenes.first() else {
+        bail!("no scenes to render");
+    };
+    let (k, r) = (first.slot_to_world.len(), first.origins.len());
+    if scenes
+        .iter()
+        .any(|s| s.slot_to_world.len() != k || s.origins.len() != r)
+    {
+        bail!("scenes of one batch must have the same number of slots and rays");
+    }
+    if r == 0 {
+        bail!("no rays to render");
+    }
+    Ok((scenes.len(), k, r))
+}
+
+/// Encodes `lines` in each field's frame (`frames`: world-to-field and origin) into `dest`,
+/// field-major [S, R, in_dim]; fields in parallel.
+fn encode_fields(
+    cfg: &Config,
+    dest: &mut [f32],
+    frames: &[(DMat4, DVec3)],
+    lines: &[(DVec3, DVec3)],
+) {
+    let in_dim = cfg.ray_input_dim();
+    dest.par_chunks_mut(lines.len() * in_dim)
+        .zip(frames.par_iter())
+        .for_each(|(field, (inv, _))| {
+            for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
+                encode_line(out, inv, *o, *d, cfg.scene_scale, cfg.ray_fourier_freqs);
+            }
+        });
+}
+
+/// The ordering shifts of the ray (o, d) for each field (`frames`' origins): how far along the
+/// ray its frame origin lies (plus ρ²/`locality` for foreground slots with a locality bound, ρ
+/// the ray's distance from the origin), written into `row` relative to the smallest, which is
+/// returned as the ray's base.
+fn ordering_shifts(
+    frames: &[(DMat4, DVec3)],
+    o: DVec3,
+    d: DVec3,
+    locality: f64,
+    row: &mut [f32],
+) -> f64 {
+    let d = d.normalize();
+    let shifts: Vec<f64> = frames
+        .iter()
+        .enumerate()
+        .map(|(si, (_, t))| {
+            let along = (*t - o).dot(d);
+            if si == 0 || locality == 0.0 {
+                return along;
+            }
+            let rho_sq = ((*t - o) - along * d).length_squared();
+            along + rho_sq / locality
+        })
+        .collect();
+    let lo = shifts.iter().copied().fold(f64::INFINITY, f64::min);
+    for (out, v) in row.iter_mut().zip(&shifts) {
+        *out = (v - lo) as f32;
+    }
+    lo
 }
 
 #[cfg(test)]
