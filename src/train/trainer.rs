@@ -4,12 +4,12 @@
 //! Every step draws its randomness from `StdRng::seed_from_u64(mix(seed, step))`, so a run
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
-use crate::optim::{Adam, AdamConfig};
 use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
-use crate::model::{Colf, Config, RayBatch, SceneRays};
+use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
+use crate::optim::{Adam, AdamConfig};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{DType, Tensor, D};
@@ -203,6 +203,16 @@ pub struct Trainer {
     num_slots: usize,
 }
 
+/// What a step's forward pass computed.
+struct Forward {
+    encoded: SlotOutput,
+    decoded: Decoded,
+    /// The rays' target colours, RGB per ray, scene-major.
+    targets: Vec<f32>,
+    /// The compositor weights on the host, [B, R, S] flattened.
+    weights_host: Vec<f32>,
+}
+
 const CHECKPOINT_FORMAT: &str = "colf-train-checkpoint/1";
 
 fn step_rng(seed: u64, step: u64) -> StdRng {
@@ -294,8 +304,44 @@ impl Trainer {
     /// One optimisation step (a non-finite loss skips the update and is counted).
     pub fn train_step(&mut self) -> Result<StepLog> {
         let started = Instant::now();
+        let mut rng = step_rng(self.opts.seed, self.step);
+        // 1. The batch: scenes drawn with their input views and the rays to supervise.
+        let samples = self.sample_batch(&mut rng)?;
+        // 2. Forward: encode the input views, place the slots, decode the rays.
+        let forward = self.forward(&samples, &mut rng)?;
+        // 3. The loss: colour, latent penalty and the optional mask losses.
+        let mut log = StepLog::default();
+        let (loss, mse) = self.loss(&samples, &forward, &mut log)?;
+        // 4. What the step measured, on the host.
+        let loss_value = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        let mse_value = mse.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        log.step = self.step;
+        log.loss = loss_value;
+        log.mse = mse_value;
+        log.psnr = crate::metrics::psnr_from_mse(mse_value.max(1e-12));
+        log.lr = self.learning_rate();
+        let rgb_host = forward.decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
+        let s = 1 + self.num_slots;
+        ray_metrics(
+            &mut log,
+            &samples,
+            &rgb_host,
+            &forward.targets,
+            &forward.weights_host,
+            s,
+        );
+        log.forward_s = started.elapsed().as_secs_f64();
+        // 5. Backward and Adam, unless the loss or a gradient is not finite.
+        self.update(&loss, loss_value.is_finite(), &mut log)?;
+        self.step += 1;
+        log.seconds = started.elapsed().as_secs_f64();
+        log.rays_per_s = forward.targets.len() as f64 / 3.0 / log.seconds;
+        Ok(log)
+    }
+
+    /// Step 1: `batch_scenes` scenes drawn with `rng`, each with its input view and rays.
+    fn sample_batch(&self, rng: &mut StdRng) -> Result<Vec<SceneSample>> {
         let opts = &self.opts;
-        let mut rng = step_rng(opts.seed, self.step);
         let sampling = RaySampling {
             views: opts.views_per_scene,
             rays_per_view: opts.rays_per_view,
@@ -303,23 +349,25 @@ impl Trainer {
             mask_margin: opts.mask_margin,
             shadow_depth: opts.mask_shadow_depth,
         };
-        let samples: Vec<SceneSample> = (0..opts.batch_scenes)
+        (0..opts.batch_scenes)
             .map(|_| {
                 let i = rng.random_range(0..self.data.len());
-                sample_scene(&self.data[i], &sampling, &mut rng)
+                sample_scene(&self.data[i], &sampling, rng)
             })
-            .collect::<Result<_>>()?;
+            .collect()
+    }
+
+    /// Step 2: the input views encoded (slot noise from `rng`), the slots placed in their
+    /// frames, and the sampled rays decoded.
+    fn forward(&self, samples: &[SceneSample], rng: &mut StdRng) -> Result<Forward> {
         let model = self.colf.model();
         let cfg = self.colf.config();
-        let dev = self.colf.device().clone();
-        let (b, k) = (samples.len(), self.num_slots);
-        let r = samples[0].origins.len();
-
+        let dev = self.colf.device();
         let images = samples
             .iter()
-            .map(|s| image_tensor(cfg, &s.input, s.input_h, s.input_w, &dev))
+            .map(|s| image_tensor(cfg, &s.input, s.input_h, s.input_w, dev))
             .collect::<candle_core::Result<Vec<_>>>()?;
-        let encoded = model.encode(&Tensor::cat(&images, 0)?, k, &mut rng)?;
+        let encoded = model.encode(&Tensor::cat(&images, 0)?, self.num_slots, rng)?;
         let fields = model.prepare(&encoded.fg, &encoded.bg)?;
         let centroids = encoded.fg_centroid.to_vec3::<f32>()?;
         let frames: Vec<Vec<DMat4>> = samples
@@ -339,13 +387,38 @@ impl Trainer {
                 dirs: &s.dirs,
             })
             .collect();
-        let rays = RayBatch::new(cfg, &scene_rays, &dev)?;
+        let rays = RayBatch::new(cfg, &scene_rays, dev)?;
         let decoded = model.decode(&fields, &rays)?;
         let targets: Vec<f32> = samples
             .iter()
             .flat_map(|s| s.targets.iter().copied())
             .collect();
-        let target = Tensor::from_vec(targets.clone(), (b, r, 3), &dev)?;
+        let weights_host = decoded.weights.flatten_all()?.to_vec1::<f32>()?;
+        Ok(Forward {
+            encoded,
+            decoded,
+            targets,
+            weights_host,
+        })
+    }
+
+    /// Step 3: the loss and the colour MSE (for the log); the mask losses' values go to `log`.
+    fn loss(
+        &self,
+        samples: &[SceneSample],
+        forward: &Forward,
+        log: &mut StepLog,
+    ) -> Result<(Tensor, Tensor)> {
+        let opts = &self.opts;
+        let (b, k) = (samples.len(), self.num_slots);
+        let r = samples[0].origins.len();
+        let Forward {
+            encoded,
+            decoded,
+            targets,
+            weights_host,
+        } = forward;
+        let target = Tensor::from_vec(targets.clone(), (b, r, 3), self.colf.device())?;
         let diff = (&decoded.rgb - &target)?;
         let mse = diff.sqr()?.mean_all()?;
         let mut loss = mse.clone();
@@ -355,66 +428,73 @@ impl Trainer {
         if opts.latent_weight > 0.0 && k > 0 {
             loss = (loss + (encoded.fg.sqr()?.mean_all()? * opts.latent_weight)?)?;
         }
-        let mut log = StepLog::default();
-        let weights_host = decoded.weights.flatten_all()?.to_vec1::<f32>()?;
         let s = 1 + k;
-        let mut mask_loss_value = None;
         if opts.mask_weight > 0.0 && samples.iter().all(|s| s.has_masks) {
-            let (index, valid) = matched_targets(&samples, &weights_host, s);
+            let (index, valid) = matched_targets(samples, weights_host, s);
             let ray_weights = balanced_ray_weights(&index, &valid);
             let ce = weighted_cross_entropy(&decoded.log_weights, index, ray_weights)?;
-            mask_loss_value = Some(ce.to_scalar::<f32>()? as f64);
+            log.mask_loss = Some(ce.to_scalar::<f32>()? as f64);
             loss = (loss + (ce * opts.mask_weight)?)?;
         }
         if opts.attention_mask_weight > 0.0 && k > 0 {
-            if let Some(masks) = samples
-                .iter()
-                .map(|s| s.input_mask.as_ref())
-                .collect::<Option<Vec<_>>>()
-            {
-                // Supervise slot attention itself: each token's attention over the slots
-                // against the input view's mask, objects matched to slots on the attention.
-                let g = cfg.token_grid();
-                let attention = encoded
-                    .log_attention
-                    .exp()?
-                    .flatten_all()?
-                    .to_vec1::<f32>()?;
-                let (mut index, mut valid) = (Vec::new(), Vec::new());
-                for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
-                    let exclusion = MaskExclusion {
-                        mask,
-                        image: &sample.input,
-                        w: sample.input_w,
-                        h: sample.input_h,
-                        margin: opts.mask_margin,
-                        shadow_below: sample.input_shadow_below,
-                    };
-                    let (ids, near) = token_ids(&exclusion, g);
-                    let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
-                    let (i, v) = match_objects(&ids, scene, s, Some(&near));
-                    index.extend(i);
-                    valid.extend(v);
-                }
-                let weights = balanced_ray_weights(&index, &valid);
-                let ce = weighted_cross_entropy(&encoded.log_attention, index, weights)?;
+            if let Some(ce) = self.attention_mask_loss(samples, encoded)? {
                 log.attention_mask_loss = Some(ce.to_scalar::<f32>()? as f64);
                 loss = (loss + (ce * opts.attention_mask_weight)?)?;
             }
         }
-        let loss_value = loss.to_dtype(DType::F64)?.to_scalar::<f64>()?;
-        let mse_value = mse.to_dtype(DType::F64)?.to_scalar::<f64>()?;
+        Ok((loss, mse))
+    }
+
+    /// Supervises slot attention itself: each token's attention over the slots against the
+    /// input view's mask, objects matched to slots on the attention. None without masks.
+    fn attention_mask_loss(
+        &self,
+        samples: &[SceneSample],
+        encoded: &SlotOutput,
+    ) -> Result<Option<Tensor>> {
+        let Some(masks) = samples
+            .iter()
+            .map(|s| s.input_mask.as_ref())
+            .collect::<Option<Vec<_>>>()
+        else {
+            return Ok(None);
+        };
+        let g = self.colf.config().token_grid();
+        let s = 1 + self.num_slots;
+        let attention = encoded
+            .log_attention
+            .exp()?
+            .flatten_all()?
+            .to_vec1::<f32>()?;
+        let (mut index, mut valid) = (Vec::new(), Vec::new());
+        for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
+            let exclusion = MaskExclusion {
+                mask,
+                image: &sample.input,
+                w: sample.input_w,
+                h: sample.input_h,
+                margin: self.opts.mask_margin,
+                shadow_below: sample.input_shadow_below,
+            };
+            let (ids, near) = token_ids(&exclusion, g);
+            let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
+            let (i, v) = match_objects(&ids, scene, s, Some(&near));
+            index.extend(i);
+            valid.extend(v);
+        }
+        let weights = balanced_ray_weights(&index, &valid);
+        Ok(Some(weighted_cross_entropy(
+            &encoded.log_attention,
+            index,
+            weights,
+        )?))
+    }
+
+    /// Step 5: backward and one Adam step when `finite`; otherwise (or when a gradient is not
+    /// finite) the step is skipped and counted, and too many skipped steps end the run.
+    fn update(&mut self, loss: &Tensor, finite: bool, log: &mut StepLog) -> Result<()> {
         let lr = self.learning_rate();
-        log.step = self.step;
-        log.loss = loss_value;
-        log.mse = mse_value;
-        log.psnr = crate::metrics::psnr_from_mse(mse_value.max(1e-12));
-        log.lr = lr;
-        log.mask_loss = mask_loss_value;
-        let rgb_host = decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
-        ray_metrics(&mut log, &samples, &rgb_host, &targets, &weights_host, s);
-        log.forward_s = started.elapsed().as_secs_f64();
-        let update = if loss_value.is_finite() {
+        let update = if finite {
             let backward_started = Instant::now();
             let grads = loss.backward()?;
             log.backward_s = backward_started.elapsed().as_secs_f64();
@@ -433,17 +513,14 @@ impl Trainer {
                 log.skipped = true;
                 if self.bad_steps > self.opts.max_bad_steps {
                     bail!(
-                        "{} steps had a non-finite loss or gradient (limit {}); lower the learning rate (--lr) or check the data",
+                        "{} steps had a non-finite loss or gradient (limit {}); lower the learning rate or check the data",
                         self.bad_steps,
                         self.opts.max_bad_steps
                     );
                 }
             }
         }
-        self.step += 1;
-        log.seconds = started.elapsed().as_secs_f64();
-        log.rays_per_s = (b * r) as f64 / log.seconds;
-        Ok(log)
+        Ok(())
     }
 
     /// Saves the model file and the checkpoint (both atomically; the checkpoint holds the model,
@@ -733,7 +810,9 @@ fn ray_metrics(
         }
     }
     if obj_n > 0 {
-        log.obj_psnr = Some(crate::metrics::psnr_from_mse((obj_sq / obj_n as f64).max(1e-12)));
+        log.obj_psnr = Some(crate::metrics::psnr_from_mse(
+            (obj_sq / obj_n as f64).max(1e-12),
+        ));
         log.fg_share = Some(fg_sum / (obj_n / 3) as f64);
     }
     if !aris.is_empty() {
