@@ -154,7 +154,7 @@ fn a_volumetric_model_encodes_and_renders_end_to_end() {
     one_line_error(
         &render(&codes, &cams, &out, &["--model", m, "--samples", "0"]),
         "render",
-        "--samples",
+        "samples per ray",
     );
     assert!(!out.exists());
 }

@@ -145,7 +145,7 @@ impl Colf {
         // `build` checks the tensors against the model the config describes: any missing,
         // unexpected or reshaped tensor is refused.
         Colf::build(cfg, self.params.clone(), None, "the new config").context(
-            "the settings change the model's tensors (grow and train with --init and --set instead)",
+            "the settings change the model's tensors (grow the model and train it from this one instead)",
         )
     }
 

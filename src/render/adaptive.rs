@@ -49,7 +49,7 @@ pub fn active_mask(
     eps: f32,
 ) -> Result<(Vec<bool>, AdaptiveStats)> {
     if !(eps.is_finite() && eps >= 0.0) {
-        bail!("--adaptive: ε must be a finite number ≥ 0, not {eps}");
+        bail!("adaptive rendering: ε must be a finite number ≥ 0, not {eps}");
     }
     let s = renderer.fields();
     let (w, h) = (frame.intrinsics.w as usize, frame.intrinsics.h as usize);
@@ -118,7 +118,7 @@ pub fn render_adaptive(
     eps: f32,
 ) -> Result<(RayOutput, AdaptiveStats)> {
     if renderer.is_volumetric() {
-        bail!("--adaptive applies to light-field models only (this model is volumetric)");
+        bail!("adaptive rendering applies to light-field models only (this model is volumetric)");
     }
     let (mask, stats) = active_mask(renderer, frame, eps)?;
     Ok((renderer.render(origins, dirs, None, Some(&mask))?, stats))

@@ -445,7 +445,7 @@ impl FastRenderer {
         match &self.kind {
             Kind::LightField(lf) => {
                 if samples.is_some() {
-                    bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray)");
+                    bail!("samples per ray apply to volumetric models only; this model renders light fields (one evaluation per ray)");
                 }
                 par_ray_chunks(
                     &mut out,
@@ -465,7 +465,7 @@ impl FastRenderer {
                 }
                 let n_samples = samples.unwrap_or(vol.samples);
                 if n_samples == 0 || n_samples > 4096 {
-                    bail!("--samples must be in 1..=4096, not {n_samples}");
+                    bail!("samples per ray must be in 1..=4096, not {n_samples}");
                 }
                 let chunk = (VOL_POINTS / n_samples).max(1);
                 par_ray_chunks(&mut out, chunk, origins, dirs, |scratch, _, rays, out| {

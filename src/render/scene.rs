@@ -33,7 +33,7 @@ impl PreparedScene {
         let identity = model.identity()?;
         if codes.model != identity {
             bail!(
-                "{codes_name}: encoded by model `{}`, but the model in use is `{identity}` (pass the encoding model with --model or COLF_MODEL)",
+                "{codes_name}: encoded by model `{}`, but the model in use is `{identity}` (render them with the model that encoded them)",
                 codes.model
             );
         }
@@ -50,19 +50,19 @@ impl PreparedScene {
     pub fn check_options(&self, opts: &RenderOptions) -> Result<()> {
         if self.renderer.is_volumetric() {
             if opts.adaptive.is_some() {
-                bail!("--adaptive applies to light-field models only (this model is volumetric)");
+                bail!("adaptive rendering applies to light-field models only (this model is volumetric)");
             }
         } else if opts.samples.is_some() {
-            bail!("--samples applies to volumetric models only; this model renders light fields (one evaluation per ray per slot)");
+            bail!("samples per ray apply to volumetric models only; this model renders light fields (one evaluation per ray per slot)");
         }
         if let Some(n) = opts.samples {
             if n == 0 || n > 4096 {
-                bail!("--samples must be in 1..=4096, not {n}");
+                bail!("samples per ray must be in 1..=4096, not {n}");
             }
         }
         if let Some(eps) = opts.adaptive {
             if !(eps.is_finite() && eps >= 0.0) {
-                bail!("--adaptive: ε must be a finite number ≥ 0, not {eps}");
+                bail!("adaptive rendering: ε must be a finite number ≥ 0, not {eps}");
             }
         }
         Ok(())

@@ -154,7 +154,7 @@ impl TrainOptions {
             bail!("object fraction must be in [0, 1]");
         }
         if !(0.0..=1.0).contains(&self.mask_shadow_depth) {
-            bail!("--mask-shadow-depth must be in [0, 1]");
+            bail!("the mask shadow depth must be in [0, 1]");
         }
         Ok(())
     }
@@ -252,7 +252,7 @@ impl Trainer {
                     } else {
                         let cfg = colf.config().with_overrides(&opts.config_overrides)?;
                         colf.reconfigured(&cfg, opts.seed, &p.display().to_string())
-                            .context("--set with --init may change only settings that keep every tensor's shape, turn on static_background or widen hypernet_hidden")?
+                            .context("a config change of an initial model may only keep every tensor's shape, turn on static_background or widen hypernet_hidden")?
                     }
                 }
                 None => {
