@@ -31,16 +31,7 @@ fn tiny() -> Config {
         compositor_hidden: 8,
         compositor_hidden_layers: 1,
         scene_scale: 4.0,
-        zero_background: false,
-        static_background: false,
-        hypernet_rms_norm: true,
-        attention_frames: false,
-        fg_locality: 0.0,
-        frame_ground_height: 0.0,
-        shadow_head: false,
-        shadow_light: None,
-        volumetric: None,
-        inference: None,
+        ..Config::small()
     }
 }
 

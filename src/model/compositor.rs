@@ -25,7 +25,7 @@
 //! constant added to every score is invisible to the softmax), `compositor.gap_log_slope` [1].
 
 use super::config::Config;
-use super::layers::Mlp;
+use super::layers::{Mlp, OutputLayer};
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::{Init, VarBuilder};
 
@@ -51,11 +51,12 @@ pub struct Composite {
 impl Compositor {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Compositor> {
         Ok(Compositor {
-            v: Mlp::without_output_bias(
+            v: Mlp::new(
                 2,
                 cfg.compositor_hidden,
                 cfg.compositor_hidden_layers,
                 1,
+                OutputLayer::NoBias,
                 vb.pp("v"),
             )?,
             // Initial slope 1 per scene_scale of depth gap: soft enough that every slot gets

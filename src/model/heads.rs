@@ -6,7 +6,7 @@
 //! `heads.shadow.{weight [1, F], bias [1]}`.
 
 use super::config::Config;
-use super::layers::Mlp;
+use super::layers::{Mlp, OutputLayer};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 
@@ -72,11 +72,11 @@ impl Heads {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Heads> {
         let (f, h, n) = (cfg.lfn_features, cfg.head_hidden, cfg.head_hidden_layers);
         Ok(Heads {
-            color: Mlp::new(f, h, n, 3, vb.pp("color"))?,
+            color: Mlp::new(f, h, n, 3, OutputLayer::Plain, vb.pp("color"))?,
             // Ordering values start near zero (std 1e-3 of the output layer): with the
             // compositor's depth prior, untrained heads with O(10) orderings made the weights
             // one-hot from the first step, and slots behind never received gradient.
-            ordering: Mlp::with_small_output(f, h, n, 1, 1e-3, vb.pp("ordering"))?,
+            ordering: Mlp::new(f, h, n, 1, OutputLayer::Small(1e-3), vb.pp("ordering"))?,
             shadow: if cfg.shadow_head {
                 Some(ShadowHead::new(f, vb.pp("shadow"))?)
             } else {

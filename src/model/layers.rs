@@ -29,9 +29,23 @@ impl Module for LayerNormSlow {
     }
 }
 
+/// How an [`Mlp`]'s output layer starts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum OutputLayer {
+    /// A linear layer with a bias, initialised like the hidden layers.
+    Plain,
+    /// No bias: for scores that feed a softmax, where a constant added to every score changes
+    /// nothing and so could never be learned.
+    NoBias,
+    /// Weights drawn with this standard deviation, biases zero: for outputs that must start
+    /// near zero, such as ordering values, so an untrained compositor blends slots softly and
+    /// every slot receives gradient.
+    Small(f64),
+}
+
 /// An MLP: `hidden_layers` ReLU layers of width `hidden`, then a linear output layer.
 /// Parameters `{vb}.layers.{i}.weight` [out, in] and `.bias` [out], i = 0 … hidden_layers
-/// (the output layer may go without a bias, see [`Mlp::without_output_bias`]).
+/// (the output layer may go without a bias, see [`OutputLayer`]).
 #[derive(Clone, Debug)]
 pub struct Mlp {
     layers: Vec<Linear>,
@@ -43,32 +57,7 @@ impl Mlp {
         hidden: usize,
         hidden_layers: usize,
         output: usize,
-        vb: VarBuilder,
-    ) -> Result<Mlp> {
-        Self::build(input, hidden, hidden_layers, output, true, vb)
-    }
-
-    /// As `new`, with no bias on the output layer: for scores that feed a softmax, where a
-    /// constant added to every score changes nothing and so could never be learned.
-    pub fn without_output_bias(
-        input: usize,
-        hidden: usize,
-        hidden_layers: usize,
-        output: usize,
-        vb: VarBuilder,
-    ) -> Result<Mlp> {
-        Self::build(input, hidden, hidden_layers, output, false, vb)
-    }
-
-    /// As `new`, with the output layer's weights drawn with standard deviation `output_std`
-    /// (biases zero): for outputs that must start near zero, such as ordering values, so an
-    /// untrained compositor blends slots softly and every slot receives gradient.
-    pub fn with_small_output(
-        input: usize,
-        hidden: usize,
-        hidden_layers: usize,
-        output: usize,
-        output_std: f64,
+        output_layer: OutputLayer,
         vb: VarBuilder,
     ) -> Result<Mlp> {
         let mut layers = Vec::with_capacity(hidden_layers + 1);
@@ -78,39 +67,19 @@ impl Mlp {
             width = hidden;
         }
         let vb_out = vb.pp(format!("layers.{hidden_layers}"));
-        let weight = vb_out.get_with_hints(
-            (output, width),
-            "weight",
-            candle_nn::Init::Randn {
-                mean: 0.0,
-                stdev: output_std,
-            },
-        )?;
-        let bias = vb_out.get_with_hints(output, "bias", candle_nn::Init::Const(0.0))?;
-        layers.push(Linear::new(weight, Some(bias)));
-        Ok(Mlp { layers })
-    }
-
-    fn build(
-        input: usize,
-        hidden: usize,
-        hidden_layers: usize,
-        output: usize,
-        output_bias: bool,
-        vb: VarBuilder,
-    ) -> Result<Mlp> {
-        let mut layers = Vec::with_capacity(hidden_layers + 1);
-        let mut width = input;
-        for i in 0..=hidden_layers {
-            let out = if i == hidden_layers { output } else { hidden };
-            let vb_i = vb.pp(format!("layers.{i}"));
-            layers.push(if i == hidden_layers && !output_bias {
-                candle_nn::linear_no_bias(width, out, vb_i)?
-            } else {
-                linear(width, out, vb_i)?
-            });
-            width = out;
-        }
+        layers.push(match output_layer {
+            OutputLayer::Plain => linear(width, output, vb_out)?,
+            OutputLayer::NoBias => candle_nn::linear_no_bias(width, output, vb_out)?,
+            OutputLayer::Small(stdev) => {
+                let weight = vb_out.get_with_hints(
+                    (output, width),
+                    "weight",
+                    candle_nn::Init::Randn { mean: 0.0, stdev },
+                )?;
+                let bias = vb_out.get_with_hints(output, "bias", candle_nn::Init::Const(0.0))?;
+                Linear::new(weight, Some(bias))
+            }
+        });
         Ok(Mlp { layers })
     }
 }

@@ -14,7 +14,7 @@
 //! bias_hh_l0}`, `norm_mlp.{weight,bias}`, `mlp.layers.{0,1}.{weight,bias}`.
 
 use super::config::Config;
-use super::layers::{LayerNormSlow, Mlp};
+use super::layers::{LayerNormSlow, Mlp, OutputLayer};
 use candle_core::{Module, Result, Tensor, D};
 use candle_nn::rnn::{gru, GRUConfig, GRUState, GRU, RNN};
 use candle_nn::{linear_no_bias, Init, Linear, VarBuilder};
@@ -60,7 +60,14 @@ impl SlotBranch {
             to_q: linear_no_bias(d, d, vb.pp("to_q"))?,
             gru: gru(d, d, GRUConfig::default(), vb.pp("gru"))?,
             norm_mlp: LayerNormSlow::new(d, vb.pp("norm_mlp"))?,
-            mlp: Mlp::new(d, cfg.slot_mlp_hidden, 1, d, vb.pp("mlp"))?,
+            mlp: Mlp::new(
+                d,
+                cfg.slot_mlp_hidden,
+                1,
+                d,
+                OutputLayer::Plain,
+                vb.pp("mlp"),
+            )?,
         })
     }
 
