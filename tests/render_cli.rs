@@ -18,6 +18,12 @@ fn encode(scene: &Path, out: &Path) {
 
 /// `colf-encode` of the scene's first view with `flags` added to the default encoding.
 fn encode_with(scene: &Path, out: &Path, flags: &[&str]) {
+    let run = encode_output(scene, out, flags);
+    assert!(run.status.success(), "{run:?}");
+}
+
+/// Runs `colf-encode` of the scene's first view with `flags`, writing `out`.
+fn encode_output(scene: &Path, out: &Path, flags: &[&str]) -> std::process::Output {
     bin("colf-encode")
         .arg(scene.join("view_000.png"))
         .arg("--camera")
@@ -25,8 +31,8 @@ fn encode_with(scene: &Path, out: &Path, flags: &[&str]) {
         .args(flags)
         .arg("-o")
         .arg(out)
-        .assert()
-        .success();
+        .output()
+        .unwrap()
 }
 
 #[test]
@@ -298,17 +304,7 @@ fn bad_inputs_leave_no_output() {
 fn refined_encoding_fits_the_input_view_and_is_deterministic() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path());
-    let encode_refined = |out: &Path, extra: &[&str]| {
-        bin("colf-encode")
-            .arg(scene.join("view_000.png"))
-            .arg("--camera")
-            .arg(scene.join("transforms.json"))
-            .args(extra)
-            .arg("-o")
-            .arg(out)
-            .output()
-            .unwrap()
-    };
+    let encode_refined = |out: &Path, extra: &[&str]| encode_output(&scene, out, extra);
     // The model's default slots and tries, without refinement.
     let plain = dir.path().join("plain.codes");
     let run = encode_refined(&plain, &["--refine", "0"]);

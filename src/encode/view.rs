@@ -124,13 +124,17 @@ mod tests {
         }
     }
 
+    fn camera(size: u32) -> Frame {
+        Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(size, size, 49.13),
+            camera_to_world: DMat4::IDENTITY,
+        }
+    }
+
     #[test]
     fn rays_cover_every_pixel_and_small_images_are_compared_whole() {
-        let camera = Frame {
-            file_path: None,
-            intrinsics: Intrinsics::from_fov(8, 8, 49.13),
-            camera_to_world: DMat4::IDENTITY,
-        };
+        let camera = camera(8);
         let img = image(8);
         let view = InputView::new(&camera, &img);
         assert_eq!(view.origins.len(), 64);
@@ -142,11 +146,7 @@ mod tests {
 
     #[test]
     fn large_images_are_compared_on_a_fixed_subset() {
-        let camera = Frame {
-            file_path: None,
-            intrinsics: Intrinsics::from_fov(128, 128, 49.13),
-            camera_to_world: DMat4::IDENTITY,
-        };
+        let camera = camera(128);
         let img = image(128);
         let a = InputView::new(&camera, &img);
         let b = InputView::new(&camera, &img);

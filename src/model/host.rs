@@ -430,22 +430,40 @@ impl Colf {
         }
         let r = origins.len();
         if let Some(vol) = self.model.volumetric() {
-            return self.render_rays_volumetric(vol, prepared, slot_to_world, origins, dirs);
+            // The volumetric reference render (candle ops, `samples` from the config).
+            rays::world_to_slot(slot_to_world)?;
+            rays::check_rays(origins, dirs)?;
+            let d = self.model.cfg.slot_dim;
+            let flat: Vec<f32> = prepared.latents.iter().flatten().copied().collect();
+            let latents = Tensor::from_vec(flat, (s, d), &self.device)?;
+            return self.in_chunks(origins.len(), s, |range, out| {
+                let v = vol.render_reference(
+                    &latents,
+                    slot_to_world,
+                    &origins[range.clone()],
+                    &dirs[range],
+                    vol.cfg.samples,
+                )?;
+                out.rgb.extend(v.rgb.flatten_all()?.to_vec1::<f32>()?);
+                out.weights
+                    .extend(v.weights.flatten_all()?.to_vec1::<f32>()?);
+                out.ordering
+                    .extend(v.depth.flatten_all()?.to_vec1::<f32>()?);
+                out.shadow.resize(out.ordering.len(), 0.0);
+                Ok(())
+            });
         }
         let fields = prepared
             .fields
             .as_ref()
             .ok_or_else(|| anyhow!("slots were prepared for another kind of model"))?;
-        let mut out = RayOutput::with_capacity(r, s);
-        let chunk = self.rays_per_chunk(s);
-        for start in (0..r).step_by(chunk) {
-            let end = (start + chunk).min(r);
+        self.in_chunks(r, s, |range, out| {
             let rays = RayBatch::new(
                 &self.model.cfg,
                 &[SceneRays {
                     slot_to_world,
-                    origins: &origins[start..end],
-                    dirs: &dirs[start..end],
+                    origins: &origins[range.clone()],
+                    dirs: &dirs[range],
                 }],
                 &self.device,
             )?;
@@ -461,46 +479,23 @@ impl Colf {
                 Some(sigma) => out.shadow.extend(sigma.flatten_all()?.to_vec1::<f32>()?),
                 None => out.shadow.resize(out.ordering.len(), 0.0),
             }
-        }
-        Ok(out)
+            Ok(())
+        })
     }
-}
 
-impl Colf {
-    /// The volumetric reference render (candle ops, `samples` from the config), in chunks.
-    fn render_rays_volumetric(
+    /// Renders `r` rays with `s` fields in chunks of bounded memory: `render(rays, out)` appends
+    /// the outputs of the rays `rays` to `out`.
+    fn in_chunks(
         &self,
-        vol: &volumetric::Volumetric,
-        prepared: &PreparedSlots,
-        slot_to_world: &[DMat4],
-        origins: &[DVec3],
-        dirs: &[DVec3],
+        r: usize,
+        s: usize,
+        mut render: impl FnMut(std::ops::Range<usize>, &mut RayOutput) -> Result<()>,
     ) -> Result<RayOutput> {
-        let s = 1 + prepared.num_fg;
-        let d = self.model.cfg.slot_dim;
-        rays::world_to_slot(slot_to_world)?;
-        rays::check_rays(origins, dirs)?;
-        let flat: Vec<f32> = prepared.latents.iter().flatten().copied().collect();
-        let latents = Tensor::from_vec(flat, (s, d), &self.device)?;
-        let r = origins.len();
         let mut out = RayOutput::with_capacity(r, s);
         let chunk = self.rays_per_chunk(s);
         for start in (0..r).step_by(chunk) {
-            let end = (start + chunk).min(r);
-            let v = vol.render_reference(
-                &latents,
-                slot_to_world,
-                &origins[start..end],
-                &dirs[start..end],
-                vol.cfg.samples,
-            )?;
-            out.rgb.extend(v.rgb.flatten_all()?.to_vec1::<f32>()?);
-            out.weights
-                .extend(v.weights.flatten_all()?.to_vec1::<f32>()?);
-            out.ordering
-                .extend(v.depth.flatten_all()?.to_vec1::<f32>()?);
+            render(start..(start + chunk).min(r), &mut out)?;
         }
-        out.shadow.resize(out.ordering.len(), 0.0);
         Ok(out)
     }
 }
