@@ -3,7 +3,7 @@
 
 use anyhow::{bail, Context, Result};
 use std::io::{IsTerminal, Read, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// True when `path` names stdin or stdout.
 pub fn is_stdio(path: &str) -> bool {
@@ -38,15 +38,180 @@ pub fn read_input(path: &str, binary: bool) -> Result<Vec<u8>> {
     }
 }
 
-/// Writes `bytes` to `path` atomically: a temporary file in the same folder is written, flushed
-/// and renamed over the target, so a failed run never leaves a partial file and never clobbers
-/// a good one.
+/// Temporary files being written right now, removed by the signal thread on SIGINT/SIGTERM. The
+/// lock is held while a temporary file is created and registered, and while one is renamed
+/// into place and unregistered, so the signal thread (which exits holding it) sees every
+/// temporary file that exists and never one that has become an output.
+static LIVE_TEMPS: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+fn live_temps() -> std::sync::MutexGuard<'static, Vec<PathBuf>> {
+    LIVE_TEMPS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// A temporary file in the registry: dropping it (a failed write) deletes it and unregisters it.
+struct LiveTemp {
+    file: Option<tempfile::NamedTempFile>,
+}
+
+impl LiveTemp {
+    fn create(builder: &tempfile::Builder, dir: &Path) -> std::io::Result<LiveTemp> {
+        let mut live = live_temps();
+        let file = builder.tempfile_in(dir)?;
+        live.push(file.path().to_path_buf());
+        Ok(LiveTemp { file: Some(file) })
+    }
+
+    fn file(&mut self) -> &mut std::fs::File {
+        self.file
+            .as_mut()
+            .expect("present until persisted")
+            .as_file_mut()
+    }
+
+    /// Renames the file to `target` and unregisters it.
+    fn persist(mut self, target: &Path) -> std::io::Result<()> {
+        let mut live = live_temps();
+        let file = self.file.take().expect("present until persisted");
+        let tmp_path = file.path().to_path_buf();
+        live.retain(|p| *p != tmp_path);
+        // On failure the returned file is dropped here, deleting it.
+        file.persist(target).map(drop).map_err(|e| e.error)
+    }
+}
+
+impl Drop for LiveTemp {
+    fn drop(&mut self) {
+        if let Some(file) = self.file.take() {
+            let mut live = live_temps();
+            let tmp_path = file.path().to_path_buf();
+            drop(file);
+            live.retain(|p| *p != tmp_path);
+        }
+    }
+}
+
+/// The signal a stage was interrupted by (`colf::cli::run` exits with 128 + the signal).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Interrupted {
+    pub signal: i32,
+}
+
+impl Interrupted {
+    /// The exit status of a process stopped by this signal: 130 for SIGINT, 143 for SIGTERM.
+    pub fn exit_code(&self) -> i32 {
+        128 + self.signal
+    }
+
+    fn signal_name(&self) -> &'static str {
+        match self.signal {
+            signal_hook::consts::SIGINT => "SIGINT",
+            signal_hook::consts::SIGTERM => "SIGTERM",
+            _ => "a signal",
+        }
+    }
+}
+
+impl std::fmt::Display for Interrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "interrupted by {}", self.signal_name())
+    }
+}
+
+impl std::error::Error for Interrupted {}
+
+/// Set while a stage stops by itself on a signal (see [`defer_signals`]).
+static DEFERRED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+/// Set by the first signal while deferred: the stage's stop flag.
+static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+/// The signal that set [`STOP`] (0: none).
+static PENDING: std::sync::atomic::AtomicI32 = std::sync::atomic::AtomicI32::new(0);
+
+/// Starts (once per process) the thread that handles SIGINT and SIGTERM for stage
+/// `colf-<stage>`: it deletes every temporary file of [`write_atomic`] still being written,
+/// prints `colf-<stage>: interrupted by SIG…` and exits with 128 + the signal (130, 143), so an
+/// interrupted stage leaves no partial or temporary file and every finished output intact.
+pub fn install_signal_cleanup(stage: &str) -> Result<()> {
+    use std::sync::atomic::Ordering;
+    static INSTALLED: std::sync::OnceLock<()> = std::sync::OnceLock::new();
+    if INSTALLED.get().is_some() {
+        return Ok(());
+    }
+    let mut signals = signal_hook::iterator::Signals::new([
+        signal_hook::consts::SIGINT,
+        signal_hook::consts::SIGTERM,
+    ])
+    .context("cannot install the signal handlers")?;
+    let stage = stage.to_string();
+    std::thread::Builder::new()
+        .name("colf-signals".into())
+        .spawn(move || {
+            for signal in signals.forever() {
+                // A deferring stage stops at its next safe point; a second signal stops at once.
+                if DEFERRED.load(Ordering::SeqCst) && !STOP.swap(true, Ordering::SeqCst) {
+                    PENDING.store(signal, Ordering::SeqCst);
+                    continue;
+                }
+                let live = live_temps();
+                for path in live.iter() {
+                    let _ = std::fs::remove_file(path);
+                }
+                let interrupted = Interrupted { signal };
+                eprintln!("colf-{stage}: {interrupted}");
+                // Exits holding the lock: no temporary file can be created or renamed now.
+                std::process::exit(interrupted.exit_code());
+            }
+        })
+        .context("cannot start the signal thread")?;
+    let _ = INSTALLED.set(());
+    Ok(())
+}
+
+/// From now on the first SIGINT/SIGTERM only sets the returned flag (a stage that checkpoints
+/// before it stops, like `colf-train`); [`pending_signal`] then says which signal came. A
+/// second signal still stops at once, removing temporary files.
+pub fn defer_signals() -> &'static std::sync::atomic::AtomicBool {
+    DEFERRED.store(true, std::sync::atomic::Ordering::SeqCst);
+    &STOP
+}
+
+/// The signal that set [`defer_signals`]'s flag, if one came.
+pub fn pending_signal() -> Option<Interrupted> {
+    match PENDING.load(std::sync::atomic::Ordering::SeqCst) {
+        0 => None,
+        signal => Some(Interrupted { signal }),
+    }
+}
+
+/// Writes `bytes` to `path`; see [`write_atomic_with`].
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let dir = match path.parent() {
+    write_atomic_with(path, |w| w.write_all(bytes).map_err(Into::into))
+}
+
+/// Writes an output file with `write`, which streams its bytes to the writer it is given.
+///
+/// A regular file (or a missing one) is written atomically: a temporary file in the same
+/// folder is written, flushed and renamed over the target, so a failed or interrupted run never
+/// leaves a partial file and never clobbers a good one (a symbolic link to a regular file is
+/// kept, and its target replaced). Anything else that exists (`/dev/null`, `/dev/full`, a FIFO,
+/// a terminal) is written through, opened for writing as a shell redirect would: renaming over
+/// it would replace a device or a pipe with a regular file.
+pub fn write_atomic_with(
+    path: &Path,
+    write: impl FnOnce(&mut dyn Write) -> Result<()>,
+) -> Result<()> {
+    let shown = path.display();
+    let target = match std::fs::metadata(path) {
+        Ok(meta) if !meta.is_file() => return write_through(path, write),
+        Ok(_) if path.is_symlink() => std::fs::canonicalize(path)
+            .with_context(|| format!("{shown}: cannot resolve the link"))?,
+        _ => path.to_path_buf(),
+    };
+    let dir = match target.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let shown = path.display();
     // Outputs are ordinary files: readable by others, like any file a shell redirect makes
     // (tempfile's default of 0600 would otherwise survive the rename).
     #[cfg(unix)]
@@ -57,22 +222,39 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut builder = tempfile::Builder::new();
     #[cfg(unix)]
     builder.permissions(permissions);
-    let mut tmp = builder
-        .prefix(".colf-tmp-")
-        .tempfile_in(dir)
-        .with_context(|| {
-            format!(
-                "{shown}: cannot create a temporary file in {}",
-                dir.display()
-            )
-        })?;
-    tmp.write_all(bytes)
-        .and_then(|_| tmp.as_file().sync_all())
+    builder.prefix(".colf-tmp-");
+    let mut tmp = LiveTemp::create(&builder, dir).with_context(|| {
+        format!(
+            "{shown}: cannot create a temporary file in {}",
+            dir.display()
+        )
+    })?;
+    {
+        let mut buffered = std::io::BufWriter::with_capacity(1 << 16, tmp.file());
+        write(&mut buffered).with_context(|| format!("{shown}: write failed"))?;
+        buffered
+            .flush()
+            .with_context(|| format!("{shown}: write failed"))?;
+    }
+    tmp.file()
+        .sync_all()
         .with_context(|| format!("{shown}: write failed"))?;
-    tmp.persist(path)
-        .map_err(|e| e.error)
+    tmp.persist(&target)
         .with_context(|| format!("{shown}: cannot replace the file"))?;
     Ok(())
+}
+
+/// Writes to an existing file that is not a regular file (a device, a FIFO) in place.
+fn write_through(path: &Path, write: impl FnOnce(&mut dyn Write) -> Result<()>) -> Result<()> {
+    let shown = path.display();
+    let file = std::fs::OpenOptions::new()
+        .write(true)
+        .open(path)
+        .with_context(|| format!("{shown}: cannot open for writing"))?;
+    let mut buffered = std::io::BufWriter::with_capacity(1 << 16, file);
+    write(&mut buffered)
+        .and_then(|_| buffered.flush().map_err(Into::into))
+        .with_context(|| format!("{shown}: write failed"))
 }
 
 /// Writes a stage's output: stdout for `-` (refused when stdout is a terminal and the data is
@@ -124,6 +306,68 @@ mod tests {
         write_atomic(&target, b"x").unwrap();
         let mode = std::fs::metadata(&target).unwrap().permissions().mode();
         assert_eq!(mode & 0o777, 0o644);
+    }
+
+    fn file_type(path: &Path) -> std::fs::FileType {
+        std::fs::symlink_metadata(path).unwrap().file_type()
+    }
+
+    /// Special files are written through, never replaced: a FIFO keeps its reader and stays a
+    /// FIFO, /dev/full reports "no space", /dev/null stays a character device. The FIFO, in a
+    /// temporary folder, is checked first, so wrong logic fails before it could touch /dev.
+    #[cfg(unix)]
+    #[test]
+    fn special_files_are_written_through_not_replaced() {
+        use std::os::unix::fs::FileTypeExt;
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe");
+        let c_path = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        assert_eq!(unsafe { libc::mkfifo(c_path.as_ptr(), 0o644) }, 0);
+        let reader = {
+            let fifo = fifo.clone();
+            std::thread::spawn(move || std::fs::read(fifo).unwrap())
+        };
+        write_atomic(&fifo, b"through the pipe").unwrap();
+        assert_eq!(reader.join().unwrap(), b"through the pipe");
+        assert!(file_type(&fifo).is_fifo(), "the FIFO was replaced");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+
+        let err = write_atomic(Path::new("/dev/full"), b"x").unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(msg.starts_with("/dev/full: write failed"), "{msg}");
+        assert!(msg.contains("No space left"), "{msg}");
+        write_atomic(Path::new("/dev/null"), b"x").unwrap();
+        assert!(file_type(Path::new("/dev/null")).is_char_device());
+        assert!(file_type(Path::new("/dev/full")).is_char_device());
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_link_to_a_regular_file_stays_a_link() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("real.bin");
+        let link = dir.path().join("link.bin");
+        std::fs::write(&target, b"old").unwrap();
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert!(file_type(&link).is_symlink());
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+    }
+
+    #[test]
+    fn failed_streamed_writes_leave_nothing_and_keep_the_old_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("out.bin");
+        std::fs::write(&target, b"good").unwrap();
+        let err = write_atomic_with(&target, |w| {
+            w.write_all(b"half")?;
+            bail!("encoder failed")
+        })
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("encoder failed"));
+        assert_eq!(std::fs::read(&target).unwrap(), b"good");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        assert!(!live_temps().iter().any(|p| p.starts_with(dir.path())));
     }
 
     #[test]

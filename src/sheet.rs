@@ -47,10 +47,24 @@ pub fn load_tile(bytes: &[u8], name: &str, as_labels: bool) -> Result<RgbImage32
     })
 }
 
+/// Most pixels a contact sheet (or one enlarged tile) may have: 2^26 (8192²), about 800 MB of
+/// working memory; more is a typo (`--gap 2147483648`) rather than a picture.
+pub const MAX_SHEET_PIXELS: u64 = 1 << 26;
+
 /// `image` enlarged `factor` times by pixel replication (so small renders and label masks stay
-/// crisp on a sheet).
-pub fn enlarge(image: &RgbImage32, factor: u32) -> RgbImage32 {
-    let (w, h) = (image.w * factor, image.h * factor);
+/// crisp on a sheet). `name` (the file) prefixes the error for a result above
+/// [`MAX_SHEET_PIXELS`].
+pub fn enlarge(image: &RgbImage32, factor: u32, name: &str) -> Result<RgbImage32> {
+    let (w, h) = (
+        image.w as u64 * factor as u64,
+        image.h as u64 * factor as u64,
+    );
+    if w * h > MAX_SHEET_PIXELS {
+        bail!(
+            "{name}: enlarged {factor} times the tile would be {w}x{h} pixels, more than the {MAX_SHEET_PIXELS} a sheet may have"
+        );
+    }
+    let (w, h) = (w as u32, h as u32);
     let mut data = Vec::with_capacity(3 * (w * h) as usize);
     for y in 0..h {
         let row = (y / factor) * image.w;
@@ -59,7 +73,7 @@ pub fn enlarge(image: &RgbImage32, factor: u32) -> RgbImage32 {
             data.extend_from_slice(&image.data[at..at + 3]);
         }
     }
-    RgbImage32 { w, h, data }
+    Ok(RgbImage32 { w, h, data })
 }
 
 /// Tiles `tiles` row-major into `cols` columns with `gap` pixels of white between them; tiles of
@@ -71,11 +85,16 @@ pub fn tile(tiles: &[Option<RgbImage32>], cols: usize, gap: u32) -> Result<RgbIm
     let cell_w = tiles.iter().flatten().map(|t| t.w).max().unwrap_or(1);
     let cell_h = tiles.iter().flatten().map(|t| t.h).max().unwrap_or(1);
     let rows = tiles.len().div_ceil(cols);
-    let w = cols as u32 * cell_w + (cols as u32 + 1) * gap;
-    let h = rows as u32 * cell_h + (rows as u32 + 1) * gap;
-    if w as u64 * h as u64 > 1 << 28 {
-        bail!("the contact sheet would be {w}x{h} pixels: too large");
+    // In u128: no product of a usize count and a u32 size can overflow it, so the size check
+    // sees the true size whatever the flags.
+    let side = |n: usize, cell: u32| n as u128 * cell as u128 + (n as u128 + 1) * gap as u128;
+    let (w, h) = (side(cols, cell_w), side(rows, cell_h));
+    if w * h > MAX_SHEET_PIXELS as u128 {
+        bail!(
+            "the contact sheet would be {w}x{h} pixels, more than the {MAX_SHEET_PIXELS} it may have (fewer columns, a smaller gap or scale)"
+        );
     }
+    let (w, h) = (w as u32, h as u32);
     let mut data = vec![1.0f32; 3 * (w * h) as usize];
     for (i, t) in tiles.iter().enumerate() {
         let Some(t) = t else { continue };
@@ -117,12 +136,41 @@ mod tests {
             h: 1,
             data: vec![1.0, 0.0, 0.0, 0.0, 0.0, 1.0],
         };
-        let big = enlarge(&image, 3);
+        let big = enlarge(&image, 3, "t.png").unwrap();
         assert_eq!((big.w, big.h), (6, 3));
         let px = |x: u32, y: u32| &big.data[(3 * (y * big.w + x)) as usize..][..3];
         assert_eq!(px(2, 2), &[1.0, 0.0, 0.0]);
         assert_eq!(px(3, 0), &[0.0, 0.0, 1.0]);
-        assert_eq!(enlarge(&image, 1).data, image.data);
+        assert_eq!(enlarge(&image, 1, "t.png").unwrap().data, image.data);
+    }
+
+    #[test]
+    fn absurd_columns_and_gaps_are_errors_not_panics() {
+        let red = Some(RgbImage32 {
+            w: 2,
+            h: 2,
+            data: vec![1.0; 12],
+        });
+        for (tiles, cols, gap) in [
+            (1, 1, 2_147_483_648u32),
+            (6, 4_294_967_297usize, 0),
+            (2, 4_294_967_297, 4),
+            (2, usize::MAX, u32::MAX),
+            (1, 1, u32::MAX),
+        ] {
+            let msg = format!(
+                "{:#}",
+                tile(&vec![red.clone(); tiles], cols, gap).unwrap_err()
+            );
+            assert!(msg.contains("more than the"), "{msg}");
+        }
+        let big = RgbImage32 {
+            w: 1024,
+            h: 512,
+            data: vec![0.0; 3 * 1024 * 512],
+        };
+        let msg = format!("{:#}", enlarge(&big, 16, "big.png").unwrap_err());
+        assert!(msg.starts_with("big.png: "), "{msg}");
     }
 
     #[test]

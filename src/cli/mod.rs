@@ -14,10 +14,21 @@ pub mod train;
 
 /// Runs the body of stage `colf-<stage>`: exit 0 on success; on error, one line
 /// `colf-<stage>: error: <cause chain>` on stderr and exit 1. Usage errors are clap's (exit 2).
+/// SIGINT and SIGTERM remove the stage's temporary files and exit 130 and 143
+/// (`io::install_signal_cleanup`); a body that returns `io::Interrupted` (colf-train, after its
+/// checkpoint) exits the same way.
 pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
     crate::alloc::tune_for_tensors();
-    match body() {
+    let result = crate::io::install_signal_cleanup(stage).and_then(|()| body());
+    match result {
         Ok(()) => std::process::exit(0),
+        Err(err) if err.downcast_ref::<crate::io::Interrupted>().is_some() => {
+            let interrupted = *err
+                .downcast_ref::<crate::io::Interrupted>()
+                .expect("checked");
+            eprintln!("colf-{stage}: {err:#}");
+            std::process::exit(interrupted.exit_code())
+        }
         Err(err) => {
             // `{:#}` joins the context chain on one line: "file: what: why".
             let line = format!("{err:#}").replace('\n', " ");

@@ -49,7 +49,7 @@ pub struct RenderArgs {
     pub cameras: String,
 
     /// Output folder (created if missing).
-    #[arg(long, value_name = "DIR")]
+    #[arg(long, value_name = "DIR", value_parser = clap::builder::NonEmptyStringValueParser::new())]
     pub out: String,
 
     /// Also write DIR/S.mask.png segmentation masks.
@@ -110,7 +110,7 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
         Some(text) => parse_frame_range(text, cameras.frames.len())?,
         None => 0..cameras.frames.len(),
     };
-    // Output names, checked up front: two frames must not write the same file.
+    // Output names, checked up front: no two outputs may be the same file.
     let names: Vec<String> = range
         .clone()
         .map(|i| {
@@ -119,13 +119,8 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
                 .unwrap_or_else(|| format!("frame_{i:04}"))
         })
         .collect();
-    let mut seen = std::collections::BTreeSet::new();
-    if let Some(dup) = names.iter().find(|n| !seen.insert(n.as_str())) {
-        bail!(
-            "{}: two frames would both be written as `{dup}` (give frames distinct file_path stems)",
-            display_name(&args.cameras)
-        );
-    }
+    check_output_names(&names, range.start, args.masks, args.exr)
+        .with_context(|| display_name(&args.cameras).to_string())?;
     let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     let mut scene = PreparedScene::new(&model, &codes, display_name(codes_path))?;
     if args.no_shadows {
@@ -176,9 +171,59 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The files frame `first + n` writes (`S.png`, and `S.mask.png`, `S.exr` when asked), for
+/// stems `names`; an error names the two frames that would write the same file (`x` and
+/// `x.mask` with --masks both write `x.mask.png`).
+pub fn check_output_names(
+    names: &[String],
+    first: usize,
+    masks: bool,
+    exr: bool,
+) -> anyhow::Result<()> {
+    let mut seen = std::collections::BTreeMap::new();
+    for (n, name) in names.iter().enumerate() {
+        let files = [
+            Some(format!("{name}.png")),
+            masks.then(|| format!("{name}.mask.png")),
+            exr.then(|| format!("{name}.exr")),
+        ];
+        for file in files.into_iter().flatten() {
+            if let Some(other) = seen.insert(file.clone(), first + n) {
+                anyhow::bail!(
+                    "frames {other} and {} would both write `{file}` (give frames distinct file_path stems)",
+                    first + n
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_output_file_name_is_checked_for_clashes() {
+        let names = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        assert!(check_output_names(&names(&["x", "x.mask"]), 0, false, true).is_ok());
+        let msg = check_output_names(&names(&["x", "x.mask"]), 3, true, false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            msg.contains("frames 3 and 4") && msg.contains("x.mask.png"),
+            "{msg}"
+        );
+        assert!(check_output_names(&names(&["a", "a"]), 0, false, false).is_err());
+        assert!(check_output_names(&names(&["a", "b"]), 0, true, true).is_ok());
+    }
+
+    #[test]
+    fn an_empty_output_folder_is_a_usage_error() {
+        let err = RenderArgs::try_parse_from(["colf-render", "c", "--cameras", "t", "--out", ""])
+            .unwrap_err();
+        assert_eq!(err.exit_code(), 2);
+    }
 
     #[test]
     fn bare_adaptive_uses_the_recommended_eps() {
@@ -192,6 +237,9 @@ mod tests {
             "--adaptive",
         ])
         .unwrap();
-        assert_eq!(args.adaptive, Some(crate::render::adaptive::RECOMMENDED_EPS));
+        assert_eq!(
+            args.adaptive,
+            Some(crate::render::adaptive::RECOMMENDED_EPS)
+        );
     }
 }

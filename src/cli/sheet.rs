@@ -51,7 +51,7 @@ pub fn run(args: &SheetArgs) -> Result<()> {
             }
             let bytes = crate::io::read_input(path, true)?;
             let tile = load_tile(&bytes, path, path.ends_with(".mask.png"))?;
-            Ok(Some(enlarge(&tile, args.scale)))
+            Ok(Some(enlarge(&tile, args.scale, path)?))
         })
         .collect::<Result<Vec<_>>>()?;
     let sheet = tile(&tiles, args.cols, args.gap)?;

@@ -341,8 +341,6 @@ pub struct InitArgs {
 pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     use crate::train::trainer::{TrainOptions, Trainer};
     use std::io::{IsTerminal, Write};
-    use std::sync::atomic::AtomicBool;
-    use std::sync::Arc;
 
     let (Some(data), Some(out)) = (args.data.clone(), args.out.clone()) else {
         anyhow::bail!("--data and --out are required");
@@ -379,10 +377,8 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         max_bad_steps: args.max_bad_steps,
         max_scenes: args.max_scenes,
     };
-    let stop = Arc::new(AtomicBool::new(false));
-    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
-        signal_hook::flag::register(signal, Arc::clone(&stop))?;
-    }
+    // The first SIGINT/SIGTERM stops training at the end of the step, after a checkpoint.
+    let stop = crate::io::defer_signals();
     let mut trainer = Trainer::new(opts, args.resume)?;
     let log_path = trainer.opts.log_path();
     let mut log_file = std::fs::OpenOptions::new()
@@ -411,7 +407,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     });
     let print_every = args.print_every.max(1);
     let mut write_error = None;
-    trainer.run(&stop, |line| {
+    trainer.run(stop, |line| {
         if write_error.is_none() {
             if let Err(e) = writeln!(log_file, "{line}") {
                 write_error = Some(e);
@@ -465,5 +461,9 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
         trainer.opts.out.display(),
         trainer.opts.checkpoint_path().display()
     );
-    Ok(())
+    // Checkpointed; the exit status still says the run was stopped (130, 143).
+    match crate::io::pending_signal() {
+        Some(interrupted) => Err(interrupted.into()),
+        None => Ok(()),
+    }
 }
