@@ -1,10 +1,13 @@
 //! `colf-train init` and the bundled default model.
 
+mod common;
+
 use assert_cmd::Command;
 use colf::model::{Colf, Config};
+use common::{bin, one_line_error};
 
 fn train() -> Command {
-    Command::cargo_bin("colf-train").unwrap()
+    bin("colf-train")
 }
 
 #[test]
@@ -47,11 +50,9 @@ fn usage_and_io_errors_exit_cleanly() {
     train().assert().code(2);
     let out = train()
         .args(["init", "-o", "/no/such/folder/m.safetensors"])
-        .assert()
-        .code(1);
-    let stderr = String::from_utf8(out.get_output().stderr.clone()).unwrap();
-    assert!(stderr.starts_with("colf-train: error: /no/such/folder/m.safetensors"));
-    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+        .output()
+        .unwrap();
+    one_line_error(&out, "train", "error: /no/such/folder/m.safetensors");
 }
 
 #[test]
