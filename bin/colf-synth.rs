@@ -8,5 +8,5 @@ fn main() {
             .error(clap::error::ErrorKind::ValueValidation, msg)
             .exit();
     }
-    colf::cli::run("synth", || colf::synth::run(&args))
+    colf::cli::run("synth", || colf::cli::synth::run(&args))
 }

@@ -1,6 +1,6 @@
 //! `colf-synth`: multi-view synthetic scenes with ground truth.
 
-use crate::synth::{Preset, Split};
+use crate::synth::{MoveSpec, Preset, Progress, Split, SynthOptions};
 use clap::Parser;
 use std::path::PathBuf;
 
@@ -23,7 +23,7 @@ split is drawn from its own seed stream, derived from (--seed, --split, i): trai
 never share a scene, and scene i does not depend on --scenes, so a bigger set extends a \
 smaller one.\n\n\
 Presets: clevr567 (5-7 CLEVR shapes on a grey floor, cameras at distance 12.4, elevation 40 \
-degrees, uniform azimuth; the DESIGN.md contract), packed11 (exactly 11 shapes in the same \
+degrees, uniform azimuth; the reference distribution), packed11 (exactly 11 shapes in the same \
 area), clevr567-textured (clevr567 on a procedural checker/noise floor), city (a long street \
 with 2-4 rows of boxy cars in two lanes, buildings and sky; each view stands in front of a row \
 of cars, in a lane, 0.4-2 units high, looking down the street). Cameras are redrawn (up to 20 \
@@ -66,19 +66,24 @@ pub struct SynthArgs {
     pub quiet: bool,
 }
 
-/// `--move K DX DY` checked: object index and displacement.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct MoveSpec {
-    /// 1-based object id.
-    pub object: usize,
-    pub dx: f64,
-    pub dy: f64,
-}
-
 impl SynthArgs {
     /// Checks what clap cannot; the message is a usage error (exit 2).
     pub fn validate(&self) -> Result<(), String> {
         self.move_spec().map(|_| ())
+    }
+
+    /// The library's options (after [`SynthArgs::validate`]).
+    pub fn options(&self) -> Result<SynthOptions, String> {
+        Ok(SynthOptions {
+            out: self.out.clone(),
+            scenes: self.scenes as u64,
+            seed: self.seed,
+            size: self.size,
+            views: self.views as usize,
+            preset: self.preset,
+            split: self.split,
+            moved: self.move_spec()?,
+        })
     }
 
     /// The checked `--move`, if given.
@@ -106,6 +111,46 @@ impl SynthArgs {
             dy,
         }))
     }
+}
+
+/// Runs `colf-synth`: progress on stderr (a counter on a terminal, every tenth otherwise)
+/// unless `--quiet`, and a summary line at the end.
+pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
+    use anyhow::Context;
+    use std::io::IsTerminal;
+    let options = args.options().map_err(anyhow::Error::msg)?;
+    let terminal = std::io::stderr().is_terminal();
+    let quiet = args.quiet;
+    let report = move |p: Progress| {
+        if quiet {
+            return;
+        }
+        let Progress { done: k, total: n } = p;
+        if terminal {
+            eprint!("\rcolf-synth: {k}/{n} scenes");
+        } else if k == n || (k * 10 / n) != ((k - 1) * 10 / n) {
+            eprintln!("colf-synth: {k}/{n} scenes");
+        }
+    };
+    if let Some(m) = options.moved {
+        crate::synth::check_moved_object(&options)
+            .with_context(|| format!("--move {}", m.object))?;
+    }
+    let start = std::time::Instant::now();
+    let result = crate::synth::run(&options, &report);
+    if !quiet && terminal {
+        eprintln!();
+    }
+    let n = result?;
+    if !quiet {
+        eprintln!(
+            "colf-synth: wrote {n} {} scenes to {} in {:.1} s",
+            args.preset.name(),
+            args.out.display(),
+            start.elapsed().as_secs_f64()
+        );
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -14,6 +14,7 @@
 //! `StdRng::seed_from_u64(scene_seed(S, s, i))`; nothing depends on the thread schedule.
 
 pub mod geometry;
+pub mod hash;
 pub mod presets;
 pub mod render;
 pub mod scene;
@@ -23,18 +24,17 @@ pub mod writer;
 pub use presets::Preset;
 
 use crate::camera::{look_at, Cameras, Frame, Intrinsics};
-use crate::cli::synth::{MoveSpec, SynthArgs};
 use anyhow::{bail, Context, Result};
 use glam::DVec3;
+use hash::mix64;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use rayon::prelude::*;
 use render::Tracer;
-use scene::{mix64, Scene};
+use scene::Scene;
 use serde::Serialize;
 use serde_json::json;
-use std::io::IsTerminal;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Which seed stream scenes come from.
@@ -52,6 +52,38 @@ impl Split {
             Split::Test => "test",
         }
     }
+}
+
+/// Object `object` (1-based, as in the masks) displaced by (dx, dy, 0) world units.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MoveSpec {
+    pub object: usize,
+    pub dx: f64,
+    pub dy: f64,
+}
+
+/// What to generate: everything [`run`] needs.
+#[derive(Clone, Debug)]
+pub struct SynthOptions {
+    /// Output folder (created).
+    pub out: PathBuf,
+    pub scenes: u64,
+    /// Base seed of the split's seed streams.
+    pub seed: u64,
+    /// Image width and height in pixels.
+    pub size: u32,
+    pub views: usize,
+    pub preset: Preset,
+    pub split: Split,
+    /// Also render every view with one object moved.
+    pub moved: Option<MoveSpec>,
+}
+
+/// What [`run`] reports while it works: `done` of `total` scenes are written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Progress {
+    pub done: u64,
+    pub total: u64,
 }
 
 /// Format tag of `scene.json`.
@@ -161,7 +193,8 @@ pub fn sample(
 }
 
 /// Renders scene `index` and writes its folder under `out`.
-fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path) -> Result<()> {
+fn write_scene(args: &SynthOptions, index: u64, out: &Path) -> Result<()> {
+    let moved = args.moved;
     let dir = out.join(scene_dir_name(index));
     let shown = dir.display().to_string();
     std::fs::create_dir_all(&dir).with_context(|| format!("{shown}: cannot create the folder"))?;
@@ -171,7 +204,7 @@ fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path
         args.split,
         index,
         args.size,
-        args.views as usize,
+        args.views,
     )?;
     let scene = &sampled.scene;
     let size = args.size;
@@ -192,7 +225,7 @@ fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path
     if let Some(m) = moved {
         let object = scene.objects.get(m.object - 1).with_context(|| {
             format!(
-                "{shown}: --move {}: the scene has only {} objects",
+                "{shown}: cannot move object {}: the scene has only {} objects",
                 m.object,
                 scene.objects.len()
             )
@@ -251,45 +284,43 @@ fn write_scene(args: &SynthArgs, moved: Option<MoveSpec>, index: u64, out: &Path
     writer::write_json(&dir.join("scene.json"), &doc)
 }
 
-/// Runs `colf-synth`.
-pub fn run(args: &SynthArgs) -> Result<()> {
-    let moved = args.move_spec().map_err(anyhow::Error::msg)?;
+/// Fails if some scene lacks the object to move (sampling the objects alone is cheap).
+pub fn check_moved_object(args: &SynthOptions) -> Result<()> {
+    let Some(m) = args.moved else {
+        return Ok(());
+    };
+    for index in 0..args.scenes {
+        let mut rng = StdRng::seed_from_u64(scene_seed(args.seed, args.split, index));
+        let count = presets::sample_scene(args.preset, &mut rng).objects.len();
+        if m.object > count {
+            bail!(
+                "scene {} ({}) has only {count} objects, no object {} to move",
+                index,
+                scene_dir_name(index),
+                m.object
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Generates the scenes of `args` into `args.out` (in parallel), then `dataset.json`;
+/// `progress` is called after each scene (from any thread). Returns the number of scenes.
+pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<u64> {
     let out = args.out.as_path();
     let shown = out.display();
     if out.exists() && !out.is_dir() {
         bail!("{shown}: exists and is not a folder");
     }
-    let n = args.scenes as u64;
-    // A --move naming an object some scene lacks fails before anything is rendered (sampling
-    // the objects alone is cheap).
-    if let Some(m) = moved {
-        for index in 0..n {
-            let mut rng = StdRng::seed_from_u64(scene_seed(args.seed, args.split, index));
-            let count = presets::sample_scene(args.preset, &mut rng).objects.len();
-            if m.object > count {
-                bail!(
-                    "--move {}: scene {} ({}) has only {count} objects",
-                    m.object,
-                    index,
-                    scene_dir_name(index)
-                );
-            }
-        }
-    }
+    let n = args.scenes;
+    // An object to move that some scene lacks fails before anything is rendered.
+    check_moved_object(args)?;
     std::fs::create_dir_all(out).with_context(|| format!("{shown}: cannot create the folder"))?;
-    let start = std::time::Instant::now();
     let done = AtomicUsize::new(0);
-    let terminal = std::io::stderr().is_terminal();
     (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
-        write_scene(args, moved, index, out)?;
+        write_scene(args, index, out)?;
         let k = done.fetch_add(1, Ordering::Relaxed) as u64 + 1;
-        if !args.quiet {
-            if terminal {
-                eprint!("\rcolf-synth: {k}/{n} scenes");
-            } else if k == n || (k * 10 / n) != ((k - 1) * 10 / n) {
-                eprintln!("colf-synth: {k}/{n} scenes");
-            }
-        }
+        progress(Progress { done: k, total: n });
         Ok(())
     })?;
     let dataset = json!({
@@ -303,17 +334,7 @@ pub fn run(args: &SynthArgs) -> Result<()> {
         "layout": "scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}",
     });
     writer::write_json(&out.join("dataset.json"), &dataset)?;
-    if !args.quiet {
-        if terminal {
-            eprintln!();
-        }
-        eprintln!(
-            "colf-synth: wrote {n} {} scenes to {shown} in {:.1} s",
-            args.preset.name(),
-            start.elapsed().as_secs_f64()
-        );
-    }
-    Ok(())
+    Ok(n)
 }
 
 #[cfg(test)]

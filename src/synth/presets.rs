@@ -1,10 +1,10 @@
-//! The scene distributions: `clevr567` (DESIGN.md contract), `packed11` (11 objects, the
+//! The scene distributions: `clevr567` (the reference distribution, documented in docs/synth.md), `packed11` (11 objects, the
 //! paper's generalisation test), `clevr567-textured` (clevr567 on a procedural checker/noise
 //! floor) and `city` (a long street with two lanes of boxy cars, buildings and sky).
 
+use super::hash::mix64;
 use super::scene::{
-    mix64, spherical, Building, CameraPlacement, CarShape, Light, Object, Scene, CLEVR_COLORS,
-    CLEVR_SIZES,
+    spherical, Building, CameraPlacement, CarShape, Light, Object, Scene, CLEVR_COLORS, CLEVR_SIZES,
 };
 use super::shading::Ground;
 use glam::DVec3;
@@ -15,7 +15,7 @@ use serde::Serialize;
 /// A scene distribution.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
 pub enum Preset {
-    /// CLEVR-567: 5-7 CLEVR shapes on a grey floor (the DESIGN.md contract).
+    /// CLEVR-567: 5-7 CLEVR shapes on a grey floor (the reference distribution).
     #[value(name = "clevr567")]
     #[serde(rename = "clevr567")]
     Clevr567,

@@ -242,14 +242,6 @@ pub fn spherical(azimuth_degrees: f64, elevation_degrees: f64) -> DVec3 {
     DVec3::new(ce * ca, ce * sa, se)
 }
 
-/// SplitMix64's finaliser: a bijective 64-bit mix used to derive independent seed streams.
-pub fn mix64(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

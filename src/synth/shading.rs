@@ -148,9 +148,7 @@ pub fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
 }
 
 fn lattice(x: i64, y: i64, seed: u64) -> f64 {
-    let h = crate::synth::scene::mix64(
-        seed ^ crate::synth::scene::mix64((x as u64) ^ (y as u64).rotate_left(32)),
-    );
+    let h = super::hash::mix64(seed ^ super::hash::mix64((x as u64) ^ (y as u64).rotate_left(32)));
     (h >> 11) as f64 / (1u64 << 53) as f64
 }
 
