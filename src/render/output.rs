@@ -122,7 +122,12 @@ impl FrameRender {
         let layer = Layer::new(
             (self.width as usize, self.height as usize),
             LayerAttributes::named("colf"),
-            Encoding::FAST_LOSSLESS,
+            // Blocks in increasing order: the compressor runs in parallel, and with the order
+            // unspecified the blocks land in completion order (different bytes each run).
+            Encoding {
+                line_order: LineOrder::Increasing,
+                ..Encoding::FAST_LOSSLESS
+            },
             AnyChannels::sort(SmallVec::from_vec(channels)),
         );
         let mut buffer = std::io::Cursor::new(Vec::new());
@@ -196,6 +201,25 @@ mod tests {
         assert_eq!(ch["R"], vec![0.1, 0.4]);
         assert_eq!(ch["slot1.weight"], vec![0.3, 0.05]);
         assert_eq!(ch["bg.order"], vec![1.0, -1.0]);
+    }
+
+    #[test]
+    fn exr_bytes_are_the_same_on_every_call() {
+        // 300x200 with 3 slots: many tiles, compressed in parallel.
+        let (w, h, per) = (300usize, 200usize, 4usize);
+        let wave = |n: usize, k: f32| (0..n).map(|i| (i as f32 * k).sin()).collect::<Vec<_>>();
+        let frame = FrameRender {
+            width: w as u32,
+            height: h as u32,
+            num_slots: per - 1,
+            rgb: wave(3 * w * h, 0.37),
+            weights: wave(per * w * h, 0.11),
+            ordering: wave(per * w * h, 0.05),
+        };
+        let first = frame.exr_bytes().unwrap();
+        for _ in 0..5 {
+            assert!(frame.exr_bytes().unwrap() == first, "EXR bytes differ");
+        }
     }
 
     #[test]

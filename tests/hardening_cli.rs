@@ -1,0 +1,390 @@
+//! Regression tests of issue 24 ("Hardening"): absurd sizes, special output files, output name
+//! clashes, signals, writers that must not write what readers refuse, numeric extremes,
+//! decompression bombs, exit codes and error messages. Each test names the defect it guards.
+
+mod common;
+
+use colf::codes::{Codes, Slot};
+use common::{bin, fails_with, write};
+use glam::{DMat4, DVec3};
+use rand::{Rng, SeedableRng};
+use std::path::{Path, PathBuf};
+use std::process::{Command as StdCommand, ExitStatus, Stdio};
+use std::time::{Duration, Instant};
+
+const GOOD_PNG: &str = "testdata/synth/clevr567_seed0_scene00000_view_000.png";
+
+fn sample(k: usize, dim: usize) -> Codes {
+    Codes {
+        slots: (0..k)
+            .map(|i| Slot {
+                latent: vec![0.25; dim],
+                slot_to_world: DMat4::from_translation(DVec3::new(i as f64, 0.0, 0.0)),
+                mass: 0.5,
+                source: format!("s.png#{i}"),
+            })
+            .collect(),
+        background: vec![0.5; dim],
+        model: "m".into(),
+    }
+}
+
+fn codes_file(dir: &Path, name: &str, codes: &Codes) -> String {
+    write(dir, name, &codes.to_bytes().unwrap())
+}
+
+fn temporaries(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".colf-tmp-"))
+        .collect()
+}
+
+// ---- 1. colf-sheet sizes -------------------------------------------------------------------
+
+#[test]
+fn sheet_with_absurd_gap_or_columns_is_an_error_not_a_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("s.png");
+    for (cols, gap, tiles) in [
+        ("1", "2147483648", 1),
+        ("4294967297", "4", 6),
+        ("4294967297", "4", 2),
+    ] {
+        fails_with(
+            bin("colf-sheet")
+                .args(vec![GOOD_PNG; tiles])
+                .args(["--cols", cols, "--gap", gap, "-o"])
+                .arg(&out),
+            "sheet",
+            1,
+            "pixels, more than the",
+        );
+        assert!(!out.exists(), "a sheet was written for --cols {cols}");
+    }
+}
+
+// ---- 2. -o on special files ------------------------------------------------------------------
+
+#[cfg(unix)]
+#[test]
+fn output_to_devices_and_fifos_is_written_through() {
+    use std::os::unix::fs::FileTypeExt;
+    let dir = tempfile::tempdir().unwrap();
+    let edits = write(dir.path(), "e.json", b"[]");
+    let codes = codes_file(dir.path(), "a.codes", &sample(2, 8));
+    // A FIFO in a temporary folder first: its reader gets the codes, and it stays a FIFO.
+    let fifo = dir.path().join("pipe");
+    let c_path = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    assert_eq!(unsafe { libc::mkfifo(c_path.as_ptr(), 0o644) }, 0);
+    let reader = {
+        let fifo = fifo.clone();
+        std::thread::spawn(move || std::fs::read(fifo).unwrap())
+    };
+    bin("colf-edit")
+        .args([&edits, &codes, "-o"])
+        .arg(&fifo)
+        .timeout(Duration::from_secs(60))
+        .assert()
+        .success();
+    let read = reader.join().unwrap();
+    assert!(Codes::from_bytes(&read, "fifo").is_ok());
+    assert!(std::fs::symlink_metadata(&fifo)
+        .unwrap()
+        .file_type()
+        .is_fifo());
+    // /dev/full: "no space", exit 1.
+    fails_with(
+        bin("colf-edit").args([&edits, &codes, "-o", "/dev/full"]),
+        "edit",
+        1,
+        "No space left on device",
+    );
+    // /dev/null: accepted, and still a character device.
+    bin("colf-edit")
+        .args([&edits, &codes, "-o", "/dev/null"])
+        .assert()
+        .success();
+    for dev in ["/dev/null", "/dev/full"] {
+        let kind = std::fs::symlink_metadata(dev).unwrap().file_type();
+        assert!(kind.is_char_device(), "{dev} is no longer a device");
+    }
+    assert!(temporaries(dir.path()).is_empty());
+}
+
+// ---- 3. render output names ------------------------------------------------------------------
+
+/// A codes file of the bundled model (one encoder pass of the test image) in `dir`.
+fn model_codes(dir: &Path) -> PathBuf {
+    let out = dir.join("scene.codes");
+    bin("colf-encode")
+        .args([GOOD_PNG, "--fast", "-o"])
+        .arg(&out)
+        .assert()
+        .success();
+    out
+}
+
+fn cameras(dir: &Path, frames: usize, size: u32) -> PathBuf {
+    let out = dir.join("cameras.json");
+    bin("colf-cameras")
+        .args(["orbit", "--frames", &frames.to_string()])
+        .args(["--size", &size.to_string(), "-o"])
+        .arg(&out)
+        .assert()
+        .success();
+    out
+}
+
+#[test]
+fn render_outputs_that_would_overwrite_each_other_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let codes = model_codes(dir.path());
+    let text = std::fs::read_to_string(cameras(dir.path(), 2, 8)).unwrap();
+    let text =
+        text.replacen("frame_0000.png", "x.png", 1)
+            .replacen("frame_0001.png", "x.mask.png", 1);
+    let clash = write(dir.path(), "clash.json", text.as_bytes());
+    let out = dir.path().join("out");
+    fails_with(
+        bin("colf-render")
+            .arg(&codes)
+            .args(["--cameras", &clash, "--masks", "--out"])
+            .arg(&out),
+        "render",
+        1,
+        "frames 0 and 1 would both write `x.mask.png`",
+    );
+    assert!(!out.exists() || std::fs::read_dir(&out).unwrap().count() == 0);
+    fails_with(
+        bin("colf-render")
+            .arg(&codes)
+            .args(["--cameras", &clash, "--out", ""]),
+        "render",
+        2,
+        "--out",
+    );
+}
+
+// ---- 4. signals --------------------------------------------------------------------------------
+
+/// Runs `cmd`, sends `signal` after `delay` (or lets it finish), and returns its status.
+fn interrupt(cmd: &mut StdCommand, delay: Duration, signal: &str) -> ExitStatus {
+    let mut child = cmd
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let started = Instant::now();
+    while started.elapsed() < delay {
+        if child.try_wait().unwrap().is_some() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let pid = child.id().to_string();
+    let _ = StdCommand::new("kill")
+        .args([&format!("-{signal}"), &pid])
+        .status();
+    child.wait().unwrap()
+}
+
+/// An interrupted stage exits 130 (SIGINT) or 143 (SIGTERM), or was done before the signal
+/// came; killed before its handler was installed, the signal's default action ends it.
+fn assert_interrupted_status(status: ExitStatus, signal: &str) {
+    use std::os::unix::process::ExitStatusExt;
+    let (code, number) = match signal {
+        "INT" => (130, libc::SIGINT),
+        _ => (143, libc::SIGTERM),
+    };
+    assert!(
+        status.code() == Some(code) || status.success() || status.signal() == Some(number),
+        "SIG{signal}: {status:?}"
+    );
+}
+
+/// Kill points drawn from a fixed seed, alternating SIGINT and SIGTERM.
+fn kill_points(seed: u64, count: usize, max: Duration) -> Vec<(Duration, &'static str)> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    (0..count)
+        .map(|i| {
+            let ms = rng.random_range(0..max.as_millis() as u64);
+            (
+                Duration::from_millis(ms),
+                if i % 2 == 0 { "INT" } else { "TERM" },
+            )
+        })
+        .collect()
+}
+
+/// Every file in `dir` is byte-identical to the file of the same name in `reference` (outputs
+/// are deterministic, so a finished output equals the reference and a partial one would not).
+fn assert_outputs_complete(dir: &Path, reference: &Path) {
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap();
+        let expected = std::fs::read(reference.join(name))
+            .unwrap_or_else(|_| panic!("unexpected file {}", path.display()));
+        assert!(
+            std::fs::read(&path).unwrap() == expected,
+            "{} is partial",
+            path.display()
+        );
+    }
+}
+
+#[test]
+fn interrupted_render_leaves_no_partial_or_temporary_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let codes = model_codes(dir.path());
+    let cams = cameras(dir.path(), 6, 192);
+    let render = |out: &Path| {
+        let mut cmd = StdCommand::new(env!("CARGO_BIN_EXE_colf-render"));
+        cmd.arg(&codes)
+            .arg("--cameras")
+            .arg(&cams)
+            .args(["--masks", "--exr", "--out"])
+            .arg(out);
+        cmd
+    };
+    let reference = dir.path().join("reference");
+    assert!(render(&reference).status().unwrap().success());
+    for (n, (delay, signal)) in kill_points(4, 6, Duration::from_millis(1500))
+        .into_iter()
+        .enumerate()
+    {
+        let out = dir.path().join(format!("out{n}"));
+        // An earlier, finished output that the interrupted run must leave intact or rewrite whole.
+        std::fs::create_dir_all(&out).unwrap();
+        std::fs::copy(reference.join("frame_0003.exr"), out.join("frame_0003.exr")).unwrap();
+        let status = interrupt(&mut render(&out), delay, signal);
+        assert_interrupted_status(status, signal);
+        assert!(temporaries(&out).is_empty(), "{:?}", temporaries(&out));
+        assert_outputs_complete(&out, &reference);
+        assert!(out.join("frame_0003.exr").exists());
+    }
+}
+
+#[test]
+fn interrupted_encode_and_edit_keep_the_old_output() {
+    let dir = tempfile::tempdir().unwrap();
+    let old = sample(1, 8).to_bytes().unwrap();
+    // encode: a refined encoding takes seconds.
+    let reference = dir.path().join("reference.codes");
+    let encode = |out: &Path| {
+        let mut cmd = StdCommand::new(env!("CARGO_BIN_EXE_colf-encode"));
+        cmd.args([GOOD_PNG, "--tries", "2", "--refine", "20", "-o"])
+            .arg(out);
+        cmd
+    };
+    assert!(encode(&reference).status().unwrap().success());
+    let fresh = std::fs::read(&reference).unwrap();
+    let out = dir.path().join("out").join("scene.codes");
+    std::fs::create_dir_all(out.parent().unwrap()).unwrap();
+    for (delay, signal) in kill_points(7, 4, Duration::from_millis(3000)) {
+        std::fs::write(&out, &old).unwrap();
+        let status = interrupt(&mut encode(&out), delay, signal);
+        assert_interrupted_status(status, signal);
+        let now = std::fs::read(&out).unwrap();
+        assert!(
+            now == old || now == fresh,
+            "partial codes after SIG{signal}"
+        );
+        assert!(temporaries(out.parent().unwrap()).is_empty());
+    }
+    // edit: 60,000 slots of 64 values (15 MB) duplicated to 120,000... would be refused, so
+    // translate them all: the write is the long part.
+    let big = codes_file(dir.path(), "big.codes", &sample(60_000, 64));
+    let edits = write(
+        dir.path(),
+        "e.json",
+        br#"[{"op":"translate","slots":"all","by":[0,0,1]}]"#,
+    );
+    let edit = |out: &Path| {
+        let mut cmd = StdCommand::new(env!("CARGO_BIN_EXE_colf-edit"));
+        cmd.args([&edits, &big, "-o"]).arg(out);
+        cmd
+    };
+    let reference = dir.path().join("edited.codes");
+    assert!(edit(&reference).status().unwrap().success());
+    let fresh = std::fs::read(&reference).unwrap();
+    for (delay, signal) in kill_points(8, 6, Duration::from_millis(400)) {
+        std::fs::write(&out, &old).unwrap();
+        let status = interrupt(&mut edit(&out), delay, signal);
+        assert_interrupted_status(status, signal);
+        let now = std::fs::read(&out).unwrap();
+        assert!(
+            now == old || now == fresh,
+            "partial codes after SIG{signal}"
+        );
+        assert!(temporaries(out.parent().unwrap()).is_empty());
+    }
+    // A stage waiting on stdin exits 130 on SIGINT.
+    let child = StdCommand::new(env!("CARGO_BIN_EXE_colf-edit"))
+        .args([&edits, "-o"])
+        .arg(&out)
+        .stdin(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    StdCommand::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    let waited = child.wait_with_output().unwrap();
+    assert_eq!(waited.status.code(), Some(130), "{waited:?}");
+    assert_eq!(
+        String::from_utf8_lossy(&waited.stderr).trim(),
+        "colf-edit: interrupted by SIGINT"
+    );
+}
+
+#[test]
+fn interrupted_training_checkpoints_and_exits_non_zero() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    bin("colf-synth")
+        .args([
+            "--scenes", "2", "--size", "32", "--seed", "4", "-q", "--out",
+        ])
+        .arg(&data)
+        .assert()
+        .success();
+    for (n, (delay, signal)) in kill_points(11, 2, Duration::from_millis(3000))
+        .into_iter()
+        .enumerate()
+    {
+        let out = dir.path().join(format!("m{n}.safetensors"));
+        let mut cmd = StdCommand::new(env!("CARGO_BIN_EXE_colf-train"));
+        cmd.arg("--data")
+            .arg(&data)
+            .arg("--out")
+            .arg(&out)
+            .args(["--steps", "100000", "--batch", "1", "--rays", "64"])
+            .args(["--checkpoint-every", "7"]);
+        // At least one step first, then the seeded kill point.
+        let log = format!("{}.log.jsonl", out.display());
+        let mut child = cmd.stderr(Stdio::null()).spawn().unwrap();
+        let started = Instant::now();
+        while std::fs::read_to_string(&log).map_or(0, |t| t.lines().count()) < 1 {
+            assert!(started.elapsed().as_secs() < 120, "training did not start");
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        std::thread::sleep(delay);
+        StdCommand::new("kill")
+            .args([&format!("-{signal}"), &child.id().to_string()])
+            .status()
+            .unwrap();
+        let status = child.wait().unwrap();
+        let expected = if signal == "INT" { 130 } else { 143 };
+        assert_eq!(status.code(), Some(expected), "SIG{signal}");
+        assert!(temporaries(dir.path()).is_empty());
+        let ckpt = std::fs::read(format!("{}.ckpt", out.display())).unwrap();
+        let file = colf::tensorfile::TensorFile::parse(&ckpt, "ckpt").unwrap();
+        let step: u64 = file.require_metadata("step").unwrap().parse().unwrap();
+        assert!(step >= 1, "checkpoint at step {step}");
+        colf::model::Colf::load(&out).unwrap();
+    }
+}
