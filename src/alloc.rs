@@ -2,11 +2,9 @@
 //!
 //! candle allocates a fresh buffer for every op's result. glibc's malloc serves buffers above
 //! 128 KiB–32 MiB with `mmap` and returns freed ones to the kernel, so every op of a training
-//! step paid for fresh zeroed pages (page faults and `clear_page` were ~10 % of a profile, and
-//! system time a third of the wall time). Keeping freed memory in the heap instead cut a
-//! 10-step small-preset training run from 12.4 s to 8.1 s and the element-wise backward passes
-//! 2–3× (measured on this 2-core machine). The cost: resident memory stays near its peak
-//! instead of shrinking between steps.
+//! step paid for fresh zeroed pages. Keeping freed memory in the heap instead makes training
+//! steps about a third faster (`docs/speed.md`, "Why the hot paths look as they do"). The cost:
+//! resident memory stays near its peak instead of shrinking between steps.
 
 /// Raises glibc's mmap and trim thresholds so large freed buffers are reused, unless the user
 /// set them through the environment (`MALLOC_MMAP_THRESHOLD_`, `MALLOC_TRIM_THRESHOLD_`).

@@ -129,8 +129,8 @@ pub fn encode_image_report(
     } else {
         None
     };
-    // 4. After refinement: dropping slots before it and refining the rest cost 0.17 dB on the
-    // held-out scenes; after it, the survivors already draw the objects.
+    // 4. After refinement: dropping slots before it and refining the rest scored worse on the
+    // held-out scenes (`docs/refinement.md`); after it, the survivors already draw the objects.
     let slots = drop_redundant_slots(model, slots, &background, &view, opts.redundant_mse)?;
     Ok((
         Codes {

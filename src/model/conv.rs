@@ -1,7 +1,7 @@
 //! 3×3 convolutions on channels-last images as im2col + one fused dense layer.
 //!
-//! Why: candle's `conv2d` backward was the largest single cost of a training step (the encoder's
-//! forward + backward took ~200 of ~375 ms on one core). Unfolding the 3×3 neighbourhoods into
+//! Why: candle's `conv2d` backward was the largest single cost of a training step (measured in
+//! `docs/speed.md`, "Why the hot paths look as they do"). Unfolding the 3×3 neighbourhoods into
 //! rows (`im2col`, whose backward `col2im` adds them back) turns a convolution into one gemm with
 //! the fast backward of [`super::fused::dense`]. Keeping the encoder's activations channels-last
 //! ([B, H, W, C]) makes each unfolded tap a contiguous run of C floats, and the final
