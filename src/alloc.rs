@@ -2,8 +2,8 @@
 //!
 //! candle allocates a fresh buffer for every op's result. glibc's malloc serves buffers above
 //! 128 KiB–32 MiB with `mmap` and returns freed ones to the kernel, so every op of a training
-//! step paid for fresh zeroed pages. Keeping freed memory in the heap instead makes training
-//! steps about a third faster (`docs/speed.md`, "Why the hot paths look as they do"). The cost:
+//! step paid for fresh zeroed pages. Keeping freed memory in the heap instead cuts the time of
+//! a training run by about a third (`docs/speed.md`, "Why the hot paths look as they do"). The cost:
 //! resident memory stays near its peak instead of shrinking between steps.
 
 /// Raises glibc's mmap and trim thresholds so large freed buffers are reused, unless the user
