@@ -13,10 +13,10 @@
 use anyhow::{bail, Context, Result};
 use colf::dataset::Dataset;
 use colf::encode::refine::refine_slots;
+use colf::encode::refine::RefineOptions;
 use colf::encode::InputView;
 use colf::evaluate::{encode_scene, EvalOptions};
 use colf::metrics::psnr;
-use colf::encode::refine::RefineOptions;
 use colf::render::PreparedScene;
 use std::path::PathBuf;
 

@@ -229,7 +229,10 @@ fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
         .code(1);
     let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
-    assert!(stderr.contains("config change of an initial model"), "{stderr}");
+    assert!(
+        stderr.contains("config change of an initial model"),
+        "{stderr}"
+    );
     assert!(stderr.contains("start.safetensors"), "{stderr}");
     assert!(!wider.exists());
     // A zero-background model grows: its background becomes fixed weights and the foreground
