@@ -17,6 +17,10 @@ use serde::{Deserialize, Serialize};
 /// (`"w": 6400000`) is an error rather than an out-of-memory kill.
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 
+/// Largest (pixel extent from the principal point) / (focal length): a half field of view of
+/// 89.99999°, beyond any real lens.
+pub const MAX_EXTENT_OVER_FOCAL: f64 = 1e6;
+
 /// Pinhole intrinsics of one frame, in pixels.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
@@ -73,6 +77,21 @@ impl Intrinsics {
                 self.fl_x,
                 self.fl_y
             );
+        }
+        // A focal length so short that the image spans 180° (fl_x = 1e-300) gives rays with
+        // no usable direction: the image's extent over the focal length is bounded.
+        for (name, fl, c, size) in [
+            ("fl_x", self.fl_x, self.cx, self.w),
+            ("fl_y", self.fl_y, self.cy, self.h),
+        ] {
+            let extent = c.abs().max((size as f64 - c).abs()).max(1.0);
+            if extent / fl > MAX_EXTENT_OVER_FOCAL {
+                bail!(
+                    "{what}: {name} = {fl:e} is too short a focal length for this {}x{} image (its field of view would be 180°)",
+                    self.w,
+                    self.h
+                );
+            }
         }
         Ok(())
     }
@@ -177,15 +196,35 @@ impl Frame {
     }
 }
 
+/// `v` as a unit vector, scaled by its largest component first so that neither a vector whose
+/// squared length overflows ([0, 0, 1e200]) nor one whose squared length underflows
+/// ([1e-200, 0, 0]) is lost; `None` for the zero vector or a non-finite one.
+pub fn unit_vector(v: DVec3) -> Option<DVec3> {
+    let largest = v.abs().max_element();
+    if !(largest.is_finite() && largest > 0.0) {
+        return None;
+    }
+    Some((v / largest).normalize())
+}
+
 /// Camera-to-world of a camera at `eye` looking at `target`, with `up` roughly up in the image.
 pub fn look_at(eye: DVec3, target: DVec3, up: DVec3) -> Result<DMat4> {
-    let forward = target - eye;
-    if !forward.is_finite() || forward.length() == 0.0 {
-        bail!("camera position and target coincide");
+    if !eye.is_finite() || !target.is_finite() {
+        bail!("camera position {eye:?} or target {target:?} is not finite");
     }
-    let back = -forward.normalize();
+    let forward = target - eye;
+    if !forward.is_finite() {
+        bail!("the distance from camera position {eye:?} to target {target:?} is beyond the range of numbers");
+    }
+    let Some(forward) = unit_vector(forward) else {
+        bail!("camera position and target coincide");
+    };
+    let back = -forward;
+    let Some(up) = unit_vector(up) else {
+        bail!("the up vector is zero");
+    };
     let right = up.cross(back);
-    if right.length() < 1e-9 * up.length().max(1e-300) {
+    if right.length() < 1e-9 {
         bail!("the up vector is parallel to the viewing direction");
     }
     let right = right.normalize();
@@ -634,6 +673,39 @@ mod tests {
             assert!(msg.starts_with("cams.json"), "{msg}");
             assert!(msg.contains(expected), "`{msg}` lacks `{expected}`");
         }
+    }
+
+    #[test]
+    fn absurdly_short_focal_lengths_are_refused_naming_the_file() {
+        let text = r#"{"w": 8, "h": 8, "fl_x": 1e-300, "frames": [{"transform_matrix":
+            [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}]}"#;
+        let msg = format!(
+            "{:#}",
+            Cameras::from_json(text.as_bytes(), "cams.json").unwrap_err()
+        );
+        assert!(
+            msg.starts_with("cams.json: frame 0: fl_x = 1e-300"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn look_at_survives_huge_distances_and_names_the_problem() {
+        let far = DVec3::new(7.6e307, 0.0, 6.4e307);
+        let m = look_at(far, DVec3::ZERO, DVec3::Z).unwrap();
+        // The camera looks at the origin: its back axis points to the camera.
+        assert!((m.z_axis.truncate() - unit_vector(far).unwrap()).length() < 1e-12);
+        let msg = look_at(
+            DVec3::new(1.7e308, 0.0, 0.0),
+            DVec3::new(-1.7e308, 0.0, 0.0),
+            DVec3::Z,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(msg.contains("beyond the range"), "{msg}");
+        assert_eq!(unit_vector(DVec3::new(0.0, 0.0, 1e200)), Some(DVec3::Z));
+        assert_eq!(unit_vector(DVec3::new(1e-200, 0.0, 0.0)), Some(DVec3::X));
+        assert_eq!(unit_vector(DVec3::ZERO), None);
     }
 
     #[test]

@@ -124,11 +124,19 @@ impl Codes {
         Codes::from_bytes(&bytes, crate::io::display_name(path))
     }
 
-    /// Checks the invariants a writer must keep (latent sizes, finite values, rigid frames).
+    /// Checks the invariants a writer must keep, with the checks of [`Codes::from_bytes`] on the
+    /// values as they will be stored: at most [`MAX_SLOTS`] slots, latent sizes, finite values,
+    /// frames that are rigid and finite in f32 (a translation of 1e39 is finite in f64 only).
     pub fn validate(&self) -> Result<()> {
         let dim = self.dim();
         if dim == 0 {
             bail!("codes have an empty background latent");
+        }
+        if self.slots.len() > MAX_SLOTS {
+            bail!(
+                "{} slots is more than the {MAX_SLOTS} a codes file may hold",
+                self.slots.len()
+            );
         }
         if self.background.iter().any(|v| !v.is_finite()) {
             bail!("background latent has a non-finite value");
@@ -146,9 +154,22 @@ impl Codes {
             if !(0.0..=1.0).contains(&s.mass) {
                 bail!("slot {i} has mass {} outside [0, 1]", s.mass);
             }
+            let what = format!("slot {i}: slot_to_world");
+            validate_rigid(&s.slot_to_world, &what, RIGID_TOLERANCE)?;
+            let stored =
+                DMat4::from_cols_array(&s.slot_to_world.to_cols_array().map(|v| v as f32 as f64));
+            if !stored.is_finite() {
+                let t = s.slot_to_world.w_axis.truncate();
+                bail!(
+                    "{what}: the origin [{}, {}, {}] is beyond the range of a codes file (f32, about ±3.4e38)",
+                    t.x,
+                    t.y,
+                    t.z
+                );
+            }
             validate_rigid(
-                &s.slot_to_world,
-                &format!("slot {i}: slot_to_world"),
+                &stored,
+                &format!("{what} (as stored in f32)"),
                 RIGID_TOLERANCE,
             )?;
         }
@@ -183,7 +204,7 @@ impl Codes {
             "sources".to_string(),
             serde_json::to_string(&sources).expect("strings"),
         );
-        Ok(serialize_f32(
+        let bytes = serialize_f32(
             &[
                 F32Tensor {
                     name: "slots",
@@ -207,7 +228,10 @@ impl Codes {
                 },
             ],
             &metadata,
-        ))
+        );
+        // The reader's own checks, so a writer never writes what a reader refuses.
+        Codes::from_bytes(&bytes, "the codes to write")?;
+        Ok(bytes)
     }
 
     /// Writes the codes to a file (atomically) or stdout (`-`, refused on a terminal).
@@ -350,5 +374,27 @@ pub(crate) mod tests {
         let mut codes = sample(2);
         codes.slots[0].latent.pop();
         assert!(codes.to_bytes().is_err());
+    }
+
+    #[test]
+    fn writers_refuse_what_readers_refuse() {
+        // Finite in f64, infinite in the file's f32.
+        let mut codes = sample(2);
+        codes.slots[1].slot_to_world = DMat4::from_translation(DVec3::new(1e39, 0.0, 0.0));
+        let msg = format!("{:#}", codes.to_bytes().unwrap_err());
+        assert!(
+            msg.contains("slot 1") && msg.contains("beyond the range"),
+            "{msg}"
+        );
+        // More slots than any reader accepts.
+        let mut codes = sample(1);
+        codes.slots = vec![codes.slots[0].clone(); MAX_SLOTS + 1];
+        let msg = format!("{:#}", codes.to_bytes().unwrap_err());
+        assert!(
+            msg.contains("100001 slots is more than the 100000"),
+            "{msg}"
+        );
+        codes.slots.pop();
+        assert!(Codes::from_bytes(&codes.to_bytes().unwrap(), "c").is_ok());
     }
 }

@@ -208,7 +208,7 @@ fn parse_op(value: &Value) -> std::result::Result<Op, String> {
             },
             "rotate" => {
                 let axis = f.vec3("axis")?;
-                if axis.length() < 1e-12 {
+                if unit_axis(axis).is_none() {
                     bail!("field `axis`: the rotation axis must not be zero");
                 }
                 Op::Rotate {
@@ -287,13 +287,17 @@ fn resolve(selection: &Selection, count: usize) -> Result<Vec<usize>> {
     }
 }
 
-/// World-space rotation by `degrees` about `axis` through `pivot`.
+/// `axis` as a unit vector (`camera::unit_vector`: scaled first, so [0, 0, 1e200] still
+/// turns about +Z); `None` for the zero vector.
+pub fn unit_axis(axis: DVec3) -> Option<DVec3> {
+    crate::camera::unit_vector(axis)
+}
+
+/// World-space rotation by `degrees` about `axis` (any finite non-zero vector) through `pivot`.
 pub fn rotation_about(axis: DVec3, degrees: f64, pivot: DVec3) -> DMat4 {
+    let axis = unit_axis(axis).unwrap_or(DVec3::Z);
     DMat4::from_translation(pivot)
-        * DMat4::from_quat(DQuat::from_axis_angle(
-            axis.normalize(),
-            degrees.to_radians(),
-        ))
+        * DMat4::from_quat(DQuat::from_axis_angle(axis, degrees.to_radians()))
         * DMat4::from_translation(-pivot)
 }
 
@@ -381,13 +385,32 @@ pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
 }
 
 /// Applies every op in order; an error names the op's index and field. `codes` is only
-/// changed when every op succeeds.
+/// changed when every op succeeds. After each op the codes must pass the checks of a codes
+/// file (`Codes::validate`: slot count, frames finite in f32), so the op that breaks them is
+/// the one named, and the slot count stays bounded however many ops duplicate.
 pub fn apply_edits(codes: &Codes, ops: &[Op], name: &str) -> Result<Codes> {
     let mut edited = codes.clone();
     for (i, op) in ops.iter().enumerate() {
-        apply_op(&mut edited, op).map_err(|e| anyhow!("{name}: op {i} ({}): {e:#}", op.name()))?;
+        apply_op(&mut edited, op)
+            .and_then(|()| edited.validate())
+            .map_err(|e| anyhow!("{name}: op {i} ({}): {e:#}", op.name()))?;
     }
     Ok(edited)
+}
+
+/// The Euclidean norm of `values`, in f64 and scaled by the largest magnitude, so that finite
+/// latents near 3e30 (whose squares overflow f32) still have a finite norm.
+fn scaled_norm(values: &[f32]) -> f64 {
+    let largest = values.iter().fold(0.0f64, |m, &v| m.max((v as f64).abs()));
+    if largest == 0.0 || !largest.is_finite() {
+        return largest;
+    }
+    largest
+        * values
+            .iter()
+            .map(|&v| (v as f64 / largest).powi(2))
+            .sum::<f64>()
+            .sqrt()
 }
 
 /// The JSON summary printed by `colf-edit --inspect`.
@@ -403,7 +426,7 @@ pub fn inspect(codes: &Codes) -> Value {
                 "mass": s.mass,
                 "origin": [origin.x, origin.y, origin.z],
                 "source": s.source,
-                "latent_norm": s.latent.iter().map(|v| v * v).sum::<f32>().sqrt(),
+                "latent_norm": scaled_norm(&s.latent),
             })
         })
         .collect();
@@ -573,6 +596,68 @@ mod tests {
             msg.starts_with("e.json: op 1 (translate): field `slots`: slot 1 does not exist"),
             "{msg}"
         );
+    }
+
+    #[test]
+    fn edits_that_make_unwritable_codes_name_the_op() {
+        let codes = sample(2);
+        let msg = format!(
+            "{:#}",
+            apply_edits(
+                &codes,
+                &ops(r#"[{"op":"translate","slots":[1],"by":[1e39,0,0]}]"#),
+                "e.json"
+            )
+            .unwrap_err()
+        );
+        assert!(msg.starts_with("e.json: op 0 (translate): slot 1"), "{msg}");
+        let two = r#"[{"op":"translate","slots":"all","by":[1e308,0,0]},
+                      {"op":"translate","slots":"all","by":[1e308,0,0]}]"#;
+        let msg = format!(
+            "{:#}",
+            apply_edits(&codes, &ops(two), "e.json").unwrap_err()
+        );
+        assert!(msg.starts_with("e.json: op 0 (translate): slot 0"), "{msg}");
+        // 14 doublings of 7 slots: 114,688, above the 100,000 a reader accepts; the 14th op
+        // is named.
+        let dup = vec![r#"{"op":"duplicate","slots":"all"}"#; 14].join(",");
+        let msg = format!(
+            "{:#}",
+            apply_edits(&sample(7), &ops(&format!("[{dup}]")), "e.json").unwrap_err()
+        );
+        assert!(
+            msg.starts_with("e.json: op 13 (duplicate): 114688 slots is more than the 100000"),
+            "{msg}"
+        );
+    }
+
+    #[test]
+    fn rotation_about_huge_and_tiny_axes_still_turns() {
+        let codes = sample(2);
+        for axis in ["[0,0,1e200]", "[0,0,1e-200]", "[0,0,1]"] {
+            let text = format!(r#"[{{"op":"rotate","slots":[1],"axis":{axis},"degrees":90}}]"#);
+            let edited = apply_edits(&codes, &ops(&text), "e.json").unwrap();
+            assert!(
+                (origin(&edited, 1) - DVec3::new(0.0, 1.0, 0.0)).length() < 1e-12,
+                "{axis}: {:?}",
+                origin(&edited, 1)
+            );
+        }
+        assert!(
+            err(r#"[{"op":"rotate","slots":[1],"axis":[0,0,0],"degrees":9}]"#)
+                .contains("must not be zero")
+        );
+    }
+
+    #[test]
+    fn inspect_norms_of_huge_finite_latents_are_finite() {
+        let mut codes = sample(1);
+        codes.slots[0].latent = vec![3e30, -3e30, 3e30, 4e30];
+        let norm = inspect(&codes)["slots"][0]["latent_norm"].as_f64().unwrap();
+        let expected = (3.0f64 * 9e60 + 16e60).sqrt();
+        assert!((norm / expected - 1.0).abs() < 1e-6, "{norm}");
+        assert_eq!(scaled_norm(&[0.0, 0.0]), 0.0);
+        assert!((scaled_norm(&[3.0, 4.0]) - 5.0).abs() < 1e-12);
     }
 
     #[test]

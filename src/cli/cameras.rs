@@ -30,13 +30,13 @@ pub struct CamerasArgs {
 #[derive(Args, Debug, Clone)]
 pub struct LensArgs {
     /// Image width in pixels.
-    #[arg(long, default_value_t = 64, value_name = "W")]
+    #[arg(long, default_value_t = 64, value_name = "W", value_parser = crate::cli::parse::image_side)]
     pub size: u32,
     /// Image height in pixels (default: the width).
-    #[arg(long, value_name = "H")]
+    #[arg(long, value_name = "H", value_parser = crate::cli::parse::image_side)]
     pub height: Option<u32>,
     /// Horizontal field of view in degrees.
-    #[arg(long, default_value_t = 49.13, value_name = "DEG")]
+    #[arg(long, default_value_t = 49.13, value_name = "DEG", value_parser = crate::cli::parse::fov_degrees)]
     pub fov: f64,
     /// Where to write transforms.json (`-`: stdout).
     #[arg(short, long, default_value = "-", value_name = "OUT")]
@@ -51,14 +51,15 @@ pub enum PathKind {
         #[arg(long, default_value = "0,0,0", value_parser = parse_vec3, value_name = "X,Y,Z")]
         center: DVec3,
         /// Distance from the centre.
-        #[arg(long, default_value_t = 12.4, value_name = "R")]
+        #[arg(long, default_value_t = 12.4, value_name = "R", value_parser = crate::cli::parse::positive)]
         radius: f64,
         /// Elevation above the centre's horizontal plane, degrees.
         #[arg(
             long,
             default_value_t = 40.0,
             value_name = "DEG",
-            allow_negative_numbers = true
+            allow_negative_numbers = true,
+            value_parser = crate::cli::parse::elevation_degrees
         )]
         elevation: f64,
         /// Azimuth of the first frame, degrees (0 = the +X axis).
@@ -66,11 +67,12 @@ pub enum PathKind {
             long,
             default_value_t = 0.0,
             value_name = "DEG",
-            allow_negative_numbers = true
+            allow_negative_numbers = true,
+            value_parser = crate::cli::parse::finite
         )]
         start_azimuth: f64,
         /// Number of frames (evenly spaced over 360 degrees).
-        #[arg(long, default_value_t = 36, value_name = "N")]
+        #[arg(long, default_value_t = 36, value_name = "N", value_parser = crate::cli::parse::path_frames)]
         frames: usize,
         #[command(flatten)]
         lens: LensArgs,
@@ -90,7 +92,7 @@ pub enum PathKind {
         #[arg(long, value_parser = parse_vec3, value_name = "X,Y,Z", allow_hyphen_values = true)]
         look_at_end: Option<DVec3>,
         /// Number of frames, both ends included.
-        #[arg(long, default_value_t = 24, value_name = "N")]
+        #[arg(long, default_value_t = 24, value_name = "N", value_parser = crate::cli::parse::path_frames)]
         frames: usize,
         #[command(flatten)]
         lens: LensArgs,
@@ -163,5 +165,28 @@ pub fn run(args: &CamerasArgs) -> Result<()> {
         ),
     };
     let cameras = cameras.map_err(|e| anyhow!("{e:#}"))?;
-    write_output(output, cameras.to_json().as_bytes(), false)
+    let json = cameras.to_json();
+    // The reader's own checks, so colf-cameras never writes what colf-render refuses.
+    crate::camera::Cameras::from_json(json.as_bytes(), "the cameras to write")?;
+    write_output(output, json.as_bytes(), false)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn out_of_range_values_are_usage_errors() {
+        for flags in [
+            &["orbit", "--frames", "0"][..],
+            &["orbit", "--size", "0"],
+            &["orbit", "--fov", "180"],
+            &["orbit", "--radius", "-1"],
+            &["orbit", "--elevation", "90"],
+            &["line", "--from", "1,0,0", "--to", "2,0,0", "--frames", "0"],
+        ] {
+            let err = CamerasArgs::try_parse_from([&["colf-cameras"], flags].concat()).unwrap_err();
+            assert_eq!(err.exit_code(), 2, "{flags:?}");
+        }
+    }
 }

@@ -41,11 +41,11 @@ colf-edit --inspect scene.codes"
 )]
 pub struct EditArgs {
     /// JSON edits file (`-` for stdin). With --inspect: the codes file.
-    #[arg(value_name = "EDITS")]
+    #[arg(value_name = "EDITS", required_unless_present = "inspect")]
     pub edits: Option<String>,
 
     /// Codes file to edit (`-` or omitted: stdin).
-    #[arg(value_name = "CODES")]
+    #[arg(value_name = "CODES", conflicts_with = "inspect")]
     pub codes: Option<String>,
 
     /// Where to write the edited codes (`-`: stdout, the default; refused on a terminal).
@@ -72,7 +72,7 @@ pub fn run(args: &EditArgs) -> Result<()> {
     };
     let codes_path = args.codes.as_deref().unwrap_or("-");
     if edits_path == "-" && codes_path == "-" {
-        bail!("EDITS and CODES cannot both be stdin");
+        return Err(crate::cli::both_stdin("EDITS", "CODES"));
     }
     // Parse every op before touching any file: a bad script writes nothing.
     let ops = parse_edits(&read_input(edits_path, false)?, display_name(edits_path))?;

@@ -55,11 +55,11 @@ pub struct EncodeArgs {
     pub frame: usize,
 
     /// Number of foreground slots (default: the model's).
-    #[arg(long, value_name = "K")]
+    #[arg(long, value_name = "K", value_parser = crate::cli::parse::encode_slots)]
     pub slots: Option<usize>,
 
     /// Drop slots whose attention mass is below MASS (in [0, 1]).
-    #[arg(long, value_name = "MASS")]
+    #[arg(long, value_name = "MASS", value_parser = crate::cli::parse::unit_interval)]
     pub prune: Option<f64>,
 
     /// Seed of the slot noise.
@@ -88,7 +88,7 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
     use crate::encode::{encode_image, EncodeOptions};
     use anyhow::bail;
     if args.image == "-" && args.camera.as_deref() == Some("-") {
-        bail!("IMAGE and --camera cannot both be stdin");
+        return Err(crate::cli::both_stdin("IMAGE", "--camera"));
     }
     let image = crate::image_io::read_rgb(&args.image)?;
     let camera = match &args.camera {

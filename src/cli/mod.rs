@@ -22,6 +22,10 @@ pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
     let result = crate::io::install_signal_cleanup(stage).and_then(|()| body());
     match result {
         Ok(()) => std::process::exit(0),
+        Err(err) if err.downcast_ref::<UsageError>().is_some() => {
+            eprintln!("colf-{stage}: error: {err:#}\n\nFor more information, try '--help'.");
+            std::process::exit(2)
+        }
         Err(err) if err.downcast_ref::<crate::io::Interrupted>().is_some() => {
             let interrupted = *err
                 .downcast_ref::<crate::io::Interrupted>()
@@ -34,6 +38,155 @@ pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
             let line = format!("{err:#}").replace('\n', " ");
             eprintln!("colf-{stage}: error: {line}");
             std::process::exit(1)
+        }
+    }
+}
+
+/// A usage error found after parsing (two inputs on stdin): `run` exits 2, as for clap's.
+#[derive(Debug)]
+pub struct UsageError(pub String);
+
+impl std::fmt::Display for UsageError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(&self.0)
+    }
+}
+
+impl std::error::Error for UsageError {}
+
+/// The usage error for two inputs that both name stdin (`-`).
+pub fn both_stdin(first: &str, second: &str) -> anyhow::Error {
+    UsageError(format!("{first} and {second} cannot both be stdin (`-`)")).into()
+}
+
+/// Value parsers for clap: range checks belong in parsing, so a bad value is a usage error
+/// (exit 2) naming the flag.
+pub mod parse {
+    fn number<T: std::str::FromStr>(text: &str) -> Result<T, String> {
+        text.trim()
+            .parse::<T>()
+            .map_err(|_| format!("`{text}` is not a number"))
+    }
+
+    fn f64_where(text: &str, ok: impl Fn(f64) -> bool, range: &str) -> Result<f64, String> {
+        let v: f64 = number(text)?;
+        if v.is_finite() && ok(v) {
+            Ok(v)
+        } else {
+            Err(format!("{text} is not in {range}"))
+        }
+    }
+
+    /// A finite number.
+    pub fn finite(text: &str) -> Result<f64, String> {
+        f64_where(text, |_| true, "the finite numbers")
+    }
+
+    /// A finite number > 0.
+    pub fn positive(text: &str) -> Result<f64, String> {
+        f64_where(text, |v| v > 0.0, "(0, ∞)")
+    }
+
+    /// A finite number ≥ 0.
+    pub fn non_negative(text: &str) -> Result<f64, String> {
+        f64_where(text, |v| v >= 0.0, "[0, ∞)")
+    }
+
+    /// A finite f32 ≥ 0.
+    pub fn non_negative_f32(text: &str) -> Result<f32, String> {
+        let v: f32 = number(text)?;
+        if v.is_finite() && v >= 0.0 {
+            Ok(v)
+        } else {
+            Err(format!("{text} is not in [0, ∞)"))
+        }
+    }
+
+    /// A number in [0, 1].
+    pub fn unit_interval(text: &str) -> Result<f64, String> {
+        f64_where(text, |v| (0.0..=1.0).contains(&v), "[0, 1]")
+    }
+
+    /// A learning rate in (0, 100] (refinement's).
+    pub fn learning_rate(text: &str) -> Result<f64, String> {
+        let max = crate::encode::refine::MAX_LEARNING_RATE;
+        f64_where(text, |v| v > 0.0 && v <= max, &format!("(0, {max}]"))
+    }
+
+    /// A learning rate in [0, 100] (0: off).
+    pub fn learning_rate_or_zero(text: &str) -> Result<f64, String> {
+        let max = crate::encode::refine::MAX_LEARNING_RATE;
+        f64_where(text, |v| (0.0..=max).contains(&v), &format!("[0, {max}]"))
+    }
+
+    /// A field of view in (0, 180) degrees.
+    pub fn fov_degrees(text: &str) -> Result<f64, String> {
+        f64_where(text, |v| v > 0.0 && v < 180.0, "(0, 180) degrees")
+    }
+
+    /// An elevation in (-90, 90) degrees.
+    pub fn elevation_degrees(text: &str) -> Result<f64, String> {
+        f64_where(text, |v| v.abs() < 90.0, "(-90, 90) degrees")
+    }
+
+    /// A whole number in `lo..=hi`.
+    pub fn count_in(text: &str, lo: usize, hi: usize) -> Result<usize, String> {
+        let v: usize = number(text)?;
+        if (lo..=hi).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("{v} is not in {lo}..={hi}"))
+        }
+    }
+
+    /// Foreground slots to encode: 0..=1024.
+    pub fn encode_slots(text: &str) -> Result<usize, String> {
+        count_in(text, 0, crate::model::config::MAX_ENCODE_SLOTS)
+    }
+
+    /// Encoding tries: 1..=100.
+    pub fn encode_tries(text: &str) -> Result<usize, String> {
+        count_in(text, 1, crate::model::config::MAX_ENCODE_TRIES)
+    }
+
+    /// At least one.
+    pub fn at_least_one(text: &str) -> Result<usize, String> {
+        count_in(text, 1, usize::MAX)
+    }
+
+    /// Frames of a camera path: 1..=100000.
+    pub fn path_frames(text: &str) -> Result<usize, String> {
+        count_in(text, 1, 100_000)
+    }
+
+    /// An image side: 1..=16384.
+    pub fn image_side(text: &str) -> Result<u32, String> {
+        count_in(text, 1, crate::camera::MAX_IMAGE_SIDE as usize).map(|v| v as u32)
+    }
+
+    /// Samples per ray: 1..=4096.
+    pub fn samples(text: &str) -> Result<usize, String> {
+        count_in(text, 1, 4096)
+    }
+
+    #[cfg(test)]
+    mod tests {
+        #[test]
+        fn ranges_and_non_numbers() {
+            assert_eq!(super::unit_interval("0.5"), Ok(0.5));
+            for bad in ["2", "-0.1", "nan", "inf", "x"] {
+                assert!(super::unit_interval(bad).is_err(), "{bad}");
+            }
+            assert!(super::learning_rate("1e38").is_err());
+            assert!(super::learning_rate("0").is_err());
+            assert_eq!(super::learning_rate_or_zero("0"), Ok(0.0));
+            assert!(super::fov_degrees("180").is_err());
+            assert!(super::encode_slots("1025").is_err());
+            assert_eq!(super::encode_slots("0"), Ok(0));
+            assert!(super::encode_tries("0").is_err());
+            assert!(super::image_side("0").is_err());
+            assert!(super::image_side("16385").is_err());
+            assert!(super::non_negative_f32("nan").is_err());
         }
     }
 }
@@ -65,7 +218,7 @@ pub struct FitArgs {
 
     /// Encode N times (slot noise seeds S, S+1, ...) and keep the encoding that reconstructs the
     /// input image best (default: the model's).
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = parse::encode_tries)]
     pub tries: Option<usize>,
 
     /// Refine the slot latents with N Adam steps on the input image (0: the encoder's latents;
@@ -74,27 +227,27 @@ pub struct FitArgs {
     pub refine: Option<usize>,
 
     /// Learning rate of the refinement.
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate)]
     pub refine_lr: f64,
 
     /// Pixels of the input image rendered per refinement step (all when the image has fewer).
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().rays, value_name = "R")]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().rays, value_name = "R", value_parser = parse::at_least_one)]
     pub refine_rays: usize,
 
     /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_anchor: f64,
 
     /// Drop slots the input image does not need (smallest attention mass first) while its
     /// render's mean squared error grows by at most MSE in all: an object drawn by two slots
     /// keeps one, so edits move or delete all of it (0: keep every slot; default: 2e-5, or 0
     /// with --fast).
-    #[arg(long, value_name = "MSE")]
+    #[arg(long, value_name = "MSE", value_parser = parse::unit_interval)]
     pub redundant: Option<f64>,
 
     /// Also move the slots' frame origins during refinement, with this learning rate (world
     /// units; 0: frames fixed).
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true)]
+    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate_or_zero)]
     pub refine_frame_lr: f64,
 }
 

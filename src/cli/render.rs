@@ -61,8 +61,8 @@ pub struct RenderArgs {
     pub exr: bool,
 
     /// Render only frames A..B (half-open; `A..`, `..B`, or a single index N).
-    #[arg(long, value_name = "A..B")]
-    pub frames: Option<String>,
+    #[arg(long, value_name = "A..B", value_parser = crate::render::FrameSelection::parse)]
+    pub frames: Option<crate::render::FrameSelection>,
 
     /// Model file (default: $COLF_MODEL, else the bundled default model).
     #[arg(long, value_name = "M")]
@@ -71,12 +71,13 @@ pub struct RenderArgs {
     /// Adaptive rendering: render the compositor weights at 1/4 resolution first, then evaluate
     /// each slot at full resolution only where its dilated coarse weight exceeds EPS (the
     /// background always). Bare --adaptive uses EPS = 0.03. Light-field models only.
-    #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.03")]
+    #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.03",
+          value_parser = crate::cli::parse::non_negative_f32)]
     pub adaptive: Option<f32>,
 
     /// Samples per ray of a volumetric (baseline) model (default: the model's, 64 for the
     /// `volumetric` preset). Refused for light-field models.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", value_parser = crate::cli::parse::samples)]
     pub samples: Option<usize>,
 
     /// Leave out the shadows foreground slots cast on the background (models with a shadow
@@ -96,18 +97,20 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     use crate::camera::Cameras;
     use crate::codes::Codes;
     use crate::io::{display_name, write_atomic};
-    use crate::render::{parse_frame_range, PreparedScene};
-    use anyhow::{bail, Context};
+    use crate::render::PreparedScene;
+    use anyhow::Context;
     use std::path::Path;
 
     let codes_path = args.codes.as_deref().unwrap_or("-");
     if codes_path == "-" && args.cameras == "-" {
-        bail!("CODES and --cameras cannot both be stdin");
+        return Err(crate::cli::both_stdin("CODES", "--cameras"));
     }
     let codes = Codes::read(codes_path)?;
     let cameras = Cameras::read(&args.cameras)?;
     let range = match &args.frames {
-        Some(text) => parse_frame_range(text, cameras.frames.len())?,
+        Some(selection) => selection
+            .resolve(cameras.frames.len())
+            .with_context(|| display_name(&args.cameras).to_string())?,
         None => 0..cameras.frames.len(),
     };
     // Output names, checked up front: no two outputs may be the same file.

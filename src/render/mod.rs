@@ -17,4 +17,4 @@ pub mod fast;
 pub mod output;
 pub mod scene;
 
-pub use scene::{parse_frame_range, PreparedScene, RenderOptions};
+pub use scene::{parse_frame_range, FrameSelection, PreparedScene, RenderOptions};

@@ -7,7 +7,7 @@ use crate::model::Colf;
 use crate::render::adaptive::{render_adaptive, AdaptiveStats};
 use crate::render::fast::FastRenderer;
 use crate::render::output::FrameRender;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use glam::{DMat4, DVec3};
 
 /// How to render: exact (the default), or adaptive with a threshold ε; samples per ray for a
@@ -37,9 +37,18 @@ impl PreparedScene {
                 codes.model
             );
         }
+        let dim = model.config().slot_dim;
+        if codes.dim() != dim {
+            bail!(
+                "{codes_name}: latents have {} values, the model's slots have {dim}",
+                codes.dim()
+            );
+        }
         let latents: Vec<Vec<f32>> = codes.slots.iter().map(|s| s.latent.clone()).collect();
         let slot_to_world: Vec<DMat4> = codes.slots.iter().map(|s| s.slot_to_world).collect();
-        let prepared = model.prepare(&latents, &codes.background)?;
+        let prepared = model
+            .prepare(&latents, &codes.background)
+            .with_context(|| codes_name.to_string())?;
         Ok(PreparedScene {
             renderer: FastRenderer::new(model, &prepared, &slot_to_world)?,
             slot_to_world,
@@ -126,30 +135,72 @@ impl PreparedScene {
     }
 }
 
-/// Parses `--frames`: `A..B` (half-open), `A..`, `..B`, `..` or a single index `N`, against
-/// `count` frames; returns the index range.
-pub fn parse_frame_range(text: &str, count: usize) -> Result<std::ops::Range<usize>> {
-    let num = |s: &str, default: usize| -> Result<usize> {
-        if s.is_empty() {
-            return Ok(default);
+/// A subset of a camera file's frames, as written: `A..B` (half-open), `A..`, `..B`, `..` or a
+/// single index `N`. Parsing checks the syntax; [`FrameSelection::resolve`] checks it against a
+/// file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameSelection {
+    text: String,
+    start: Option<usize>,
+    end: Option<usize>,
+    single: bool,
+}
+
+impl FrameSelection {
+    /// Parses the syntax (a clap value parser: a bad selection is a usage error).
+    pub fn parse(text: &str) -> std::result::Result<FrameSelection, String> {
+        let num = |s: &str| -> std::result::Result<Option<usize>, String> {
+            let s = s.trim();
+            if s.is_empty() {
+                return Ok(None);
+            }
+            s.parse::<usize>()
+                .map(Some)
+                .map_err(|_| format!("`{s}` is not a frame index (expected A..B, A.., ..B or N)"))
+        };
+        let (start, end, single) = match text.split_once("..") {
+            Some((a, b)) => (num(a)?, num(b)?, false),
+            None => match num(text)? {
+                Some(n) => (Some(n), n.checked_add(1), true),
+                None => return Err("empty frame selection (expected A..B, A.., ..B or N)".into()),
+            },
+        };
+        if let (Some(a), Some(b)) = (start, end) {
+            if a >= b {
+                return Err(format!("{text} selects no frames (A..B needs A < B)"));
+            }
         }
-        s.trim()
-            .parse::<usize>()
-            .map_err(|_| anyhow::anyhow!("--frames `{text}`: `{s}` is not a frame index"))
-    };
-    let range = match text.split_once("..") {
-        Some((a, b)) => num(a, 0)?..num(b, count)?,
-        None => {
-            let n = num(text, usize::MAX)?;
-            n..n.saturating_add(1)
-        }
-    };
-    if range.start >= range.end || range.end > count {
-        bail!(
-            "--frames `{text}` selects no frames of the {count} in the camera file (valid: 0..{count})"
-        );
+        Ok(FrameSelection {
+            text: text.to_string(),
+            start,
+            end,
+            single,
+        })
     }
-    Ok(range)
+
+    /// The index range in a file of `count` frames.
+    pub fn resolve(&self, count: usize) -> Result<std::ops::Range<usize>> {
+        let start = self.start.unwrap_or(0);
+        let end = self.end.unwrap_or(count);
+        if self.single && start >= count {
+            bail!("frame {start} does not exist (the file has {count} frames: 0..{count})");
+        }
+        if end > count || start >= end {
+            bail!(
+                "frames {} reach beyond the {count} frames of the file (valid: 0..{count})",
+                self.text
+            );
+        }
+        Ok(start..end)
+    }
+}
+
+/// Parses a frame selection (see [`FrameSelection`]) against `count` frames; returns the index
+/// range.
+pub fn parse_frame_range(text: &str, count: usize) -> Result<std::ops::Range<usize>> {
+    FrameSelection::parse(text)
+        .map_err(|e| anyhow::anyhow!("frames `{text}`: {e}"))?
+        .resolve(count)
 }
 
 #[cfg(test)]
@@ -166,5 +217,13 @@ mod tests {
         for bad in ["5..2", "0..11", "10", "x..3", "3..3", "-1"] {
             assert!(parse_frame_range(bad, 10).is_err(), "{bad}");
         }
+        // Syntax errors are found without a file; ranges beyond it say so.
+        for bad in ["abc", "", "5..2", "1..x", "-1"] {
+            assert!(FrameSelection::parse(bad).is_err(), "{bad}");
+        }
+        let msg = parse_frame_range("1..100", 2).unwrap_err().to_string();
+        assert!(msg.contains("beyond the 2 frames"), "{msg}");
+        let msg = parse_frame_range("7", 2).unwrap_err().to_string();
+        assert!(msg.contains("frame 7 does not exist"), "{msg}");
     }
 }
