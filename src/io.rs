@@ -244,6 +244,27 @@ pub fn write_atomic_with(
     Ok(())
 }
 
+/// Checks, before a long run, that [`write_atomic`] will be able to write `path`: it is not a
+/// folder, and a temporary file can be made beside it (then removed).
+pub fn check_writable(path: &Path) -> Result<()> {
+    let shown = path.display();
+    if path.is_dir() {
+        bail!("{shown}: is a folder, not a file to write");
+    }
+    if std::fs::metadata(path).is_ok_and(|m| !m.is_file()) {
+        return Ok(()); // a device or FIFO: written through
+    }
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".colf-tmp-");
+    LiveTemp::create(&builder, dir)
+        .map(drop)
+        .with_context(|| format!("{shown}: cannot write in {}", dir.display()))
+}
+
 /// Writes to an existing file that is not a regular file (a device, a FIFO) in place.
 fn write_through(path: &Path, write: impl FnOnce(&mut dyn Write) -> Result<()>) -> Result<()> {
     let shown = path.display();
@@ -368,6 +389,19 @@ mod tests {
         assert_eq!(std::fs::read(&target).unwrap(), b"good");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
         assert!(!live_temps().iter().any(|p| p.starts_with(dir.path())));
+    }
+
+    #[test]
+    fn writability_is_checked_up_front() {
+        let dir = tempfile::tempdir().unwrap();
+        assert!(check_writable(&dir.path().join("out.bin")).is_ok());
+        assert!(check_writable(dir.path()).is_err());
+        let msg = format!(
+            "{:#}",
+            check_writable(&dir.path().join("no/such/out.bin")).unwrap_err()
+        );
+        assert!(msg.contains("no/such/out.bin: cannot write"), "{msg}");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
     }
 
     #[test]

@@ -345,6 +345,9 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     let (Some(data), Some(out)) = (args.data.clone(), args.out.clone()) else {
         anyhow::bail!("--data and --out are required");
     };
+    // The model, its checkpoint and log go beside OUT: a bad path fails now, not after
+    // training.
+    crate::io::check_writable(&out)?;
     let opts = TrainOptions {
         data,
         out,

@@ -115,8 +115,26 @@ fn range(values: &[&[f64]]) -> (f64, f64) {
     if !lo.is_finite() {
         return (0.0, 1.0);
     }
+    let (lo, hi) = (lo.max(-AXIS_LIMIT), hi.min(AXIS_LIMIT));
     let pad = ((hi - lo) * 0.05).max(1e-9);
     (lo - pad, hi + pad)
+}
+
+/// Axes end at ±1e12: a log line with psnr ±1e308 would otherwise make the padded range
+/// infinite, and the tick search never end. Values beyond are drawn at the edge.
+const AXIS_LIMIT: f64 = 1e12;
+
+/// The step axis: the first to the last finite step (at least one step wide), within
+/// ±[`AXIS_LIMIT`].
+fn step_axis(steps: &[f64]) -> (f64, f64) {
+    let finite = || steps.iter().copied().filter(|v| v.is_finite());
+    let lo = finite().fold(f64::INFINITY, f64::min);
+    let hi = finite().fold(f64::NEG_INFINITY, f64::max);
+    if !lo.is_finite() {
+        return (0.0, 1.0);
+    }
+    let lo = lo.clamp(-AXIS_LIMIT, AXIS_LIMIT);
+    (lo, hi.clamp(-AXIS_LIMIT, AXIS_LIMIT).max(lo + 1.0))
 }
 
 /// Draws the curves into an RGB buffer of `width`×`height` and returns it encoded as PNG.
@@ -129,7 +147,7 @@ pub fn plot_png(c: &Curves, width: u32, height: u32) -> Result<Vec<u8>> {
         let root = BitMapBackend::with_buffer(&mut buffer, (width, height)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| anyhow!("plot: {e}"))?;
         let panels = root.split_evenly((2, 2));
-        let steps = (c.step[0], c.step[c.step.len() - 1].max(c.step[0] + 1.0));
+        let steps = step_axis(&c.step);
         let window = (c.step.len() / 50).max(1);
         let faint = |color: RGBColor| color.mix(0.12);
         let panel = |area: &DrawingArea<BitMapBackend, plotters::coord::Shift>,
@@ -340,6 +358,21 @@ mod tests {
         assert!(img.data.iter().any(|&v| v < 0.5));
         assert!(read_log("not json\n", "bad.jsonl").is_err());
         assert!(read_log("", "empty.jsonl").is_err());
+    }
+
+    #[test]
+    fn extreme_values_plot_in_bounded_time() {
+        let log = "{\"step\":0,\"loss\":1e308,\"psnr\":1e308}\n\
+                   {\"step\":1,\"loss\":-1e308,\"psnr\":-1e308}\n\
+                   {\"step\":1e300,\"loss\":0.1,\"psnr\":20}\n\
+                   {\"step\":2,\"eval\":{\"psnr\":1e308,\"fg_ari\":-1e308}}\n";
+        let curves = read_log(log, "log").unwrap();
+        let (lo, hi) = range(&[&curves.psnr]);
+        assert!(lo.is_finite() && hi.is_finite() && lo < hi);
+        let started = std::time::Instant::now();
+        let png = plot_png(&curves, 300, 200).unwrap();
+        assert!(!png.is_empty());
+        assert!(started.elapsed().as_secs() < 30);
     }
 
     #[test]
