@@ -26,13 +26,48 @@ impl RgbImage32 {
     }
 }
 
-/// Decodes PNG bytes; `name` (a file name) prefixes every error.
+/// Most pixels a PNG may hold to be decoded: 2^26 (8192²). The size is read from the header
+/// and checked before any pixel is decoded, so a small file declaring a huge image (a
+/// decompression bomb: 0.4 MB can hold 20000²) is refused at once.
+pub const MAX_DECODE_PIXELS: u64 = 1 << 26;
+
+/// Most bytes a PNG's decoded pixels may take: 512 MiB (8192² at 16-bit RGBA).
+pub const MAX_DECODE_BYTES: u64 = 512 << 20;
+
+/// Largest image `colf-encode` uses at its own resolution (1024²); a larger one is reduced to
+/// the encoder's input size first (see [`decode_rgb_for_encoder`]).
+pub const ENCODE_FULL_RES_PIXELS: u64 = 1 << 20;
+
+/// Decodes PNG bytes within the decoding limits; `name` (a file name) prefixes every error.
 fn decode_png(bytes: &[u8], name: &str) -> Result<DynamicImage> {
+    use image::ImageDecoder;
     // The png decoder's messages can span lines; the contract is one error line.
-    image::load_from_memory_with_format(bytes, ImageFormat::Png).map_err(|e| {
+    let invalid = |e: image::ImageError| {
         let why = e.to_string().replace('\n', " ");
         anyhow!("{name}: not a valid PNG image: {why}")
-    })
+    };
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some(MAX_DECODE_BYTES);
+    let decoder = image::codecs::png::PngDecoder::with_limits(std::io::Cursor::new(bytes), limits)
+        .map_err(|e| match e {
+            image::ImageError::Limits(_) => {
+                anyhow!("{name}: the image is larger than the {MAX_DECODE_BYTES} bytes of pixels colf decodes")
+            }
+            e => invalid(e),
+        })?;
+    let (w, h) = decoder.dimensions();
+    if w as u64 * h as u64 > MAX_DECODE_PIXELS {
+        bail!(
+            "{name}: the image is {w}x{h} pixels, more than the {MAX_DECODE_PIXELS} colf decodes"
+        );
+    }
+    if decoder.total_bytes() > MAX_DECODE_BYTES {
+        bail!(
+            "{name}: the {w}x{h} image takes {} bytes decoded, more than the {MAX_DECODE_BYTES} colf decodes",
+            decoder.total_bytes()
+        );
+    }
+    DynamicImage::from_decoder(decoder).map_err(invalid)
 }
 
 /// Decodes a PNG into RGB values in [0, 1]: 8-bit values / 255, 16-bit values / 65535; grey is
@@ -52,6 +87,30 @@ pub fn decode_rgb(bytes: &[u8], name: &str) -> Result<RgbImage32> {
         other => bail!("{name}: unsupported PNG pixel format {:?}", other.color()),
     };
     Ok(RgbImage32 { w, h, data })
+}
+
+/// Decodes a PNG for an encoder whose input is `size`×`size`: images of at most
+/// `full_res_pixels` pixels are decoded as they are ([`decode_rgb`]); larger ones are first
+/// reduced to `size`×`size` on their 8/16-bit pixels (a triangle filter), so no full-size
+/// float copy of a large photo is ever made.
+pub fn decode_rgb_for_encoder(
+    bytes: &[u8],
+    name: &str,
+    size: u32,
+    full_res_pixels: u64,
+) -> Result<RgbImage32> {
+    let img = decode_png(bytes, name)?;
+    if img.width() as u64 * img.height() as u64 <= full_res_pixels || size == 0 {
+        drop(img);
+        return decode_rgb(bytes, name);
+    }
+    let small = img.resize_exact(size, size, image::imageops::FilterType::Triangle);
+    drop(img);
+    let mut png = Vec::new();
+    small
+        .write_to(&mut std::io::Cursor::new(&mut png), ImageFormat::Png)
+        .map_err(|e| anyhow!("{name}: cannot reduce the image: {e}"))?;
+    decode_rgb(&png, name)
 }
 
 fn grey_to_rgb<T: Copy>(raw: &[T], stride: usize, to_f32: impl Fn(T) -> f32) -> Vec<f32> {
@@ -246,6 +305,47 @@ mod tests {
                 "{msg}"
             );
         }
+    }
+
+    /// A valid PNG of `w`×`h` black 8-bit grey pixels, compressed to almost nothing.
+    fn huge_png(w: u32, h: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut out)
+            .write_image(
+                &vec![0u8; w as usize * h as usize],
+                w,
+                h,
+                image::ExtendedColorType::L8,
+            )
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn decompression_bombs_are_refused_before_decoding() {
+        let bomb = huge_png(9000, 9000);
+        assert!(bomb.len() < 1 << 20, "{}", bomb.len());
+        let msg = format!("{:#}", decode_rgb(&bomb, "bomb.png").unwrap_err());
+        assert!(
+            msg.starts_with("bomb.png: the image is 9000x9000 pixels"),
+            "{msg}"
+        );
+        let msg = format!("{:#}", decode_labels(&bomb, "bomb.png").unwrap_err());
+        assert!(msg.contains("more than the 67108864"), "{msg}");
+    }
+
+    #[test]
+    fn large_images_are_reduced_for_the_encoder_and_small_ones_kept() {
+        let rgb: Vec<f32> = (0..3 * 40 * 30).map(|i| (i % 7) as f32 / 6.0).collect();
+        let png = encode_png_rgb(40, 30, &rgb);
+        let kept = decode_rgb_for_encoder(&png, "a.png", 16, 40 * 30).unwrap();
+        assert_eq!(kept, decode_rgb(&png, "a.png").unwrap());
+        let reduced = decode_rgb_for_encoder(&png, "a.png", 16, 100).unwrap();
+        assert_eq!((reduced.w, reduced.h), (16, 16));
+        assert_eq!(
+            reduced,
+            decode_rgb_for_encoder(&png, "a.png", 16, 100).unwrap()
+        );
     }
 
     #[test]

@@ -11,7 +11,10 @@ use clap::Parser;
     long_about = "Find the objects in one image without labels: the encoder and background-aware \
 slot attention of the model turn IMAGE into K foreground slot latents and one background latent, \
 written as a codes file (safetensors; see colf-edit(1) and the README for its contract).\n\n\
-The image (PNG, any size; `-` for stdin) is resized to the model's encoder input. With \
+The image (PNG; `-` for stdin) is resized to the model's encoder input. An image of more than \
+1048576 pixels (1024²) is first reduced to that input size on its 8/16-bit pixels, and \
+refinement then fits the reduced image; PNG inputs may hold at most 67108864 pixels (8192²) \
+and 512 MiB of decoded pixels, checked from the header before decoding. With \
 --camera, every slot's slot_to_world is set to that frame's camera-to-world, so slots live in \
 world space and can be moved and merged with slots of other scenes; without it the identity is \
 used (the camera frame of the image is the world). --slots sets the number of foreground slots \
@@ -90,7 +93,13 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
     if args.image == "-" && args.camera.as_deref() == Some("-") {
         return Err(crate::cli::both_stdin("IMAGE", "--camera"));
     }
-    let image = crate::image_io::read_rgb(&args.image)?;
+    let model = crate::cli::model_path::load_model(args.model.as_deref())?;
+    let image = crate::image_io::decode_rgb_for_encoder(
+        &crate::io::read_input(&args.image, true)?,
+        crate::io::display_name(&args.image),
+        model.config().encoder_size as u32,
+        crate::image_io::ENCODE_FULL_RES_PIXELS,
+    )?;
     let camera = match &args.camera {
         None => None,
         Some(path) => {
@@ -106,7 +115,6 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
             Some(frame.clone())
         }
     };
-    let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     let source = args.source.clone().unwrap_or_else(|| {
         std::path::Path::new(&args.image)
             .file_name()

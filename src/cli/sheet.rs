@@ -14,7 +14,9 @@ use clap::Parser;
 cells, and write one PNG. Files whose name ends in .mask.png are label masks (0 = background, \
 k = object or slot k): they are shown with one distinct colour per label (background black) \
 instead of as near-black grey. The word `-` in the list leaves a cell empty, so rows can be \
-aligned. Tiles of different sizes sit at the top left of cells of the largest size.",
+aligned. Tiles of different sizes sit at the top left of cells of the largest size.\n\n\
+PNG inputs may hold at most 67108864 pixels (8192²) and 512 MiB of decoded pixels, checked from \
+the header before decoding; the sheet (after --scale) may have at most 67108864 pixels.",
     after_help = "Example:\n  colf-sheet --cols 5 input.png orbit/frame_000{0,1,2,3}.png - orbit/frame_000{0,1,2,3}.mask.png -o sheet.png"
 )]
 pub struct SheetArgs {
