@@ -388,3 +388,254 @@ fn interrupted_training_checkpoints_and_exits_non_zero() {
         colf::model::Colf::load(&out).unwrap();
     }
 }
+
+// ---- 5, 6. writers refuse what readers refuse; rotations about huge axes --------------------
+
+fn edit_with(dir: &Path, script: &str, codes: &str) -> std::process::Output {
+    let edits = write(dir, "e.json", script.as_bytes());
+    bin("colf-edit")
+        .args([&edits, codes, "-o"])
+        .arg(dir.join("out.codes"))
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn edits_that_readers_would_refuse_are_errors_naming_the_op() {
+    let dir = tempfile::tempdir().unwrap();
+    let codes = codes_file(dir.path(), "a.codes", &sample(7, 8));
+    let dup = vec![r#"{"op":"duplicate","slots":"all"}"#; 14].join(",");
+    for (script, needle) in [
+        (
+            r#"[{"op":"translate","slots":[0],"by":[1e39,0,0]}]"#.to_string(),
+            "e.json: op 0 (translate): slot 0: slot_to_world: the origin",
+        ),
+        (
+            r#"[{"op":"translate","slots":[0],"by":[1e308,0,0]},
+                {"op":"translate","slots":[0],"by":[1e308,0,0]}]"#
+                .to_string(),
+            "e.json: op 0 (translate): slot 0",
+        ),
+        (
+            format!("[{dup}]"),
+            "e.json: op 13 (duplicate): 114688 slots is more than the 100000",
+        ),
+    ] {
+        let out = edit_with(dir.path(), &script, &codes);
+        common::one_line_error(&out, "edit", needle);
+        assert!(!dir.path().join("out.codes").exists());
+    }
+}
+
+#[test]
+fn rotation_about_a_huge_axis_turns_the_slot() {
+    let dir = tempfile::tempdir().unwrap();
+    let codes = codes_file(dir.path(), "a.codes", &sample(2, 8));
+    let out = edit_with(
+        dir.path(),
+        r#"[{"op":"rotate","slots":[1],"axis":[0,0,1e200],"degrees":90}]"#,
+        &codes,
+    );
+    assert!(out.status.success(), "{out:?}");
+    let edited = Codes::read(dir.path().join("out.codes").to_str().unwrap()).unwrap();
+    let origin = edited.slots[1].slot_to_world.w_axis.truncate();
+    assert!((origin - DVec3::Y).length() < 1e-6, "{origin:?}");
+}
+
+#[test]
+fn inspect_reports_finite_norms_of_huge_latents() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut codes = sample(1, 4);
+    codes.slots[0].latent = vec![3e30; 4];
+    let path = codes_file(dir.path(), "a.codes", &codes);
+    let out = bin("colf-edit")
+        .args(["--inspect", &path])
+        .output()
+        .unwrap();
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let norm = summary["slots"][0]["latent_norm"].as_f64().unwrap();
+    assert!((norm / 6e30 - 1.0).abs() < 1e-6, "{norm}");
+}
+
+// ---- 7. decompression bombs -------------------------------------------------------------------
+
+/// A valid PNG of a `side`² black RGB image: a few hundred kB that decode to side² pixels.
+fn bomb(dir: &Path, side: u32) -> String {
+    let mut png = Vec::new();
+    use image::ImageEncoder;
+    image::codecs::png::PngEncoder::new(&mut png)
+        .write_image(
+            &vec![0u8; side as usize * side as usize],
+            side,
+            side,
+            image::ExtendedColorType::L8,
+        )
+        .unwrap();
+    write(dir, "bomb.png", &png)
+}
+
+#[test]
+fn decompression_bombs_are_refused_before_decoding() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = bomb(dir.path(), 9000);
+    let needle = "the image is 9000x9000 pixels, more than the 67108864";
+    fails_with(
+        bin("colf-encode").args([&png, "--fast", "-o", "/dev/null"]),
+        "encode",
+        1,
+        needle,
+    );
+    fails_with(
+        bin("colf-sheet").args([&png, "-o", "/dev/null"]),
+        "sheet",
+        1,
+        needle,
+    );
+}
+
+// ---- 9. plot of extreme values -----------------------------------------------------------------
+
+#[test]
+fn plot_of_a_log_with_huge_psnr_ends() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = write(
+        dir.path(),
+        "m.log.jsonl",
+        b"{\"step\":0,\"loss\":1,\"psnr\":1e308}\n{\"step\":1,\"loss\":1,\"psnr\":-1e308}\n",
+    );
+    bin("colf-train")
+        .args(["plot", &log, "-o"])
+        .arg(dir.path().join("p.png"))
+        .timeout(Duration::from_secs(60))
+        .assert()
+        .success();
+}
+
+// ---- 10. usage errors exit 2 -------------------------------------------------------------------
+
+#[test]
+fn usage_errors_exit_2() {
+    let dir = tempfile::tempdir().unwrap();
+    let codes = codes_file(dir.path(), "a.codes", &sample(1, 8));
+    let cases: Vec<(&str, Vec<&str>)> = vec![
+        ("edit", vec![]),
+        ("edit", vec!["--inspect", &codes, &codes]),
+        ("edit", vec!["-", "-"]),
+        ("render", vec!["-", "--cameras", "-", "--out", "o"]),
+        ("encode", vec!["-", "--camera", "-"]),
+        (
+            "render",
+            vec![&codes, "--cameras", "c", "--out", "o", "--frames", "abc"],
+        ),
+        (
+            "render",
+            vec![&codes, "--cameras", "c", "--out", "o", "--adaptive", "nan"],
+        ),
+        ("render", vec![&codes, "--cameras", "c", "--out", ""]),
+        ("cameras", vec!["orbit", "--frames", "0"]),
+        ("cameras", vec!["orbit", "--size", "0"]),
+        ("cameras", vec!["orbit", "--fov", "180"]),
+        ("encode", vec![GOOD_PNG, "--prune", "2"]),
+        ("encode", vec![GOOD_PNG, "--slots", "1025"]),
+        ("encode", vec![GOOD_PNG, "--tries", "0"]),
+        ("encode", vec![GOOD_PNG, "--refine-lr", "1e38"]),
+        ("sheet", vec![GOOD_PNG, "--scale", "0", "-o", "s.png"]),
+    ];
+    for (stage, args) in cases {
+        let out = bin(&format!("colf-{stage}"))
+            .args(&args)
+            .write_stdin("")
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "colf-{stage} {args:?}: {out:?}");
+        assert!(out.stdout.is_empty());
+        assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
+    }
+}
+
+// ---- 11. messages name the file ----------------------------------------------------------------
+
+#[test]
+fn errors_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let cams = cameras(dir.path(), 2, 8);
+    // Latents of another size than the model's.
+    let mut codes = sample(1, 32);
+    codes.model = colf::cli::model_path::load_model(None)
+        .unwrap()
+        .identity()
+        .unwrap();
+    let short = codes_file(dir.path(), "short.codes", &codes);
+    let out = dir.path().join("out");
+    fails_with(
+        bin("colf-render")
+            .args([&short, "--cameras", cams.to_str().unwrap(), "--out"])
+            .arg(&out),
+        "render",
+        1,
+        "short.codes: latents have 32 values, the model's slots have 64",
+    );
+    // A focal length of 1e-300.
+    let text = std::fs::read_to_string(&cams).unwrap();
+    let value: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let mut value = value;
+    value["fl_x"] = serde_json::json!(1e-300);
+    if let Some(frames) = value["frames"].as_array_mut() {
+        for f in frames {
+            if f.get("fl_x").is_some() {
+                f["fl_x"] = serde_json::json!(1e-300);
+            }
+        }
+    }
+    let tiny = write(dir.path(), "tiny.json", value.to_string().as_bytes());
+    let codes = model_codes(dir.path());
+    fails_with(
+        bin("colf-render")
+            .arg(&codes)
+            .args(["--cameras", &tiny, "--out"])
+            .arg(&out),
+        "render",
+        1,
+        "tiny.json: frame 0: fl_x = 1e-300",
+    );
+    // A frame range beyond the file.
+    let err = fails_with(
+        bin("colf-render")
+            .arg(&codes)
+            .args([
+                "--cameras",
+                cams.to_str().unwrap(),
+                "--frames",
+                "1..100",
+                "--out",
+            ])
+            .arg(&out),
+        "render",
+        1,
+        "frames 1..100 reach beyond the 2 frames of the file",
+    );
+    assert!(err.contains("cameras.json"), "{err}");
+    // A camera far away is written (and rendered), not blamed on the up vector.
+    bin("colf-cameras")
+        .args(["orbit", "--radius", "1e308", "--frames", "2", "-o"])
+        .arg(dir.path().join("far.json"))
+        .assert()
+        .success();
+}
+
+// ---- 12. colf-train checks its output path first ------------------------------------------------
+
+#[test]
+fn training_into_a_missing_folder_fails_before_training() {
+    let dir = tempfile::tempdir().unwrap();
+    let started = Instant::now();
+    fails_with(
+        bin("colf-train")
+            .args(["--data", "testdata/synth", "--steps", "100000", "--out"])
+            .arg(dir.path().join("no/such/m.safetensors")),
+        "train",
+        1,
+        "no/such/m.safetensors: cannot write",
+    );
+    assert!(started.elapsed() < Duration::from_secs(30));
+}
