@@ -1,6 +1,7 @@
 //! `colf-synth`: multi-view synthetic scenes with ground truth.
 
-use crate::synth::{MoveSpec, Preset, Progress, Split, SynthOptions};
+use crate::synth::blender::{BlenderOptions, DEFAULT_SAMPLES};
+use crate::synth::{Engine, MoveSpec, OutputLayout, Preset, Progress, Split, SynthOptions};
 use clap::Parser;
 use std::path::PathBuf;
 
@@ -61,15 +62,49 @@ pub struct SynthArgs {
     #[arg(long = "move", num_args = 3, value_names = ["K", "DX", "DY"],
           allow_negative_numbers = true)]
     pub move_object: Option<Vec<f64>>,
+    /// Renderer: the built-in analytic ray tracer, or Blender's Cycles (CPU; clevr567 and
+    /// packed11 only; needs Blender 3.x, `apt-get install blender`; the executable is
+    /// `blender` on PATH or the COLF_BLENDER environment variable).
+    #[arg(long, value_enum, default_value_t = EngineName::Analytic)]
+    pub engine: EngineName,
+    /// File layout: colf's scene folders, or uORF's flat files
+    /// ({i:05}_sc{s:04}_az{v:02}.png, _mask.png, _RT.txt).
+    #[arg(long, value_enum, default_value_t = OutputLayout::Colf)]
+    pub layout: OutputLayout,
+    /// Blender engine: path-tracing samples per pixel (no denoising).
+    #[arg(long, value_name = "N", default_value_t = DEFAULT_SAMPLES,
+          value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub samples: u32,
+    /// Blender engine: Blender processes at once, each on one thread (default: the number
+    /// of CPUs).
+    #[arg(short = 'j', long, value_name = "N",
+          value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub jobs: Option<u32>,
     /// No progress on stderr.
     #[arg(short, long)]
     pub quiet: bool,
 }
 
+/// `--engine`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum EngineName {
+    /// The built-in analytic ray tracer.
+    Analytic,
+    /// Blender's Cycles.
+    Blender,
+}
+
 impl SynthArgs {
     /// Checks what clap cannot; the message is a usage error (exit 2).
     pub fn validate(&self) -> Result<(), String> {
-        self.move_spec().map(|_| ())
+        self.move_spec()?;
+        if self.engine == EngineName::Blender && !crate::synth::blender::supports(self.preset) {
+            return Err(format!(
+                "--engine blender renders --preset clevr567 or packed11, not {}",
+                self.preset.name()
+            ));
+        }
+        Ok(())
     }
 
     /// The library's options (after [`SynthArgs::validate`]).
@@ -83,6 +118,20 @@ impl SynthArgs {
             preset: self.preset,
             split: self.split,
             moved: self.move_spec()?,
+            engine: match self.engine {
+                EngineName::Analytic => Engine::Analytic,
+                EngineName::Blender => Engine::Blender(BlenderOptions {
+                    executable: std::env::var_os("COLF_BLENDER")
+                        .filter(|v| !v.is_empty())
+                        .map_or_else(|| "blender".into(), Into::into),
+                    samples: self.samples,
+                    jobs: self.jobs.map_or_else(
+                        || std::thread::available_parallelism().map_or(1, |n| n.get()),
+                        |j| j as usize,
+                    ),
+                }),
+            },
+            layout: self.layout,
         })
     }
 

@@ -13,6 +13,7 @@
 //! `DIR/dataset.json`, written last. Seeds: scene i of split s with base seed S is drawn from
 //! `StdRng::seed_from_u64(scene_seed(S, s, i))`; nothing depends on the thread schedule.
 
+pub mod blender;
 pub mod geometry;
 pub mod hash;
 pub mod presets;
@@ -30,7 +31,7 @@ use hash::mix64;
 use rand::rngs::StdRng;
 use rand::SeedableRng;
 use rayon::prelude::*;
-use render::Tracer;
+use render::{RenderedView, Tracer};
 use scene::Scene;
 use serde::Serialize;
 use serde_json::json;
@@ -77,6 +78,27 @@ pub struct SynthOptions {
     pub split: Split,
     /// Also render every view with one object moved.
     pub moved: Option<MoveSpec>,
+    pub engine: Engine,
+    pub layout: OutputLayout,
+}
+
+/// The renderer.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Engine {
+    /// The analytic ray tracer of this module.
+    Analytic,
+    /// Blender's Cycles, run as separate processes (CLEVR presets only).
+    Blender(blender::BlenderOptions),
+}
+
+/// How the files of a dataset are laid out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OutputLayout {
+    /// `scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}`.
+    Colf,
+    /// uORF's flat layout: `{i:05}_sc{s:04}_az{v:02}.png`, `…_mask.png`, `…_RT.txt`.
+    Uorf,
 }
 
 /// What [`run`] reports while it works: `done` of `total` scenes are written.
@@ -192,74 +214,83 @@ pub fn sample(
     })
 }
 
-/// Renders scene `index` and writes its folder under `out`.
-fn write_scene(args: &SynthOptions, index: u64, out: &Path) -> Result<()> {
-    let moved = args.moved;
-    let dir = out.join(scene_dir_name(index));
-    let shown = dir.display().to_string();
-    std::fs::create_dir_all(&dir).with_context(|| format!("{shown}: cannot create the folder"))?;
-    let sampled = sample(
-        args.preset,
-        args.seed,
-        args.split,
-        index,
-        args.size,
-        args.views,
-    )?;
-    let scene = &sampled.scene;
+/// The rendered views of one scene: every view, and with a move every view again with the
+/// object moved.
+pub struct SceneRender {
+    pub views: Vec<RenderedView>,
+    pub moved: Option<Vec<RenderedView>>,
+}
+
+/// Renders a sampled scene with the analytic tracer.
+fn render_analytic(sampled: &SampledScene, moved: Option<MoveSpec>) -> Result<SceneRender> {
+    let tracer = Tracer::new(&sampled.scene, None)?;
+    let views = sampled.frames.iter().map(|f| tracer.render(f)).collect();
+    let moved = match moved {
+        Some(m) => {
+            let delta = DVec3::new(m.dx, m.dy, 0.0);
+            let tracer = Tracer::new(&sampled.scene, Some((m.object, delta)))?;
+            Some(sampled.frames.iter().map(|f| tracer.render(f)).collect())
+        }
+        None => None,
+    };
+    Ok(SceneRender { views, moved })
+}
+
+/// The cameras of a scene as written in `layout`: colf's as sampled; uORF's with uORF's
+/// vertical focal length (fl_y = UORF_FOCAL_Y_PER_HEIGHT·h: its images are 4:3 renders
+/// stretched to a square).
+pub fn layout_frames(frames: &[Frame], layout: OutputLayout) -> Vec<Frame> {
+    frames
+        .iter()
+        .map(|f| {
+            let mut f = f.clone();
+            if layout == OutputLayout::Uorf {
+                f.intrinsics.fl_y = UORF_FOCAL_Y_PER_HEIGHT * f.intrinsics.h as f64;
+            }
+            f
+        })
+        .collect()
+}
+
+/// uORF's vertical focal length in units of the image height.
+pub const UORF_FOCAL_Y_PER_HEIGHT: f64 = 1.4583;
+
+/// Writes the files of scene `index` in `args.layout`. `frames` are the cameras the views
+/// were rendered with; `visible_pixels` of each object is counted from the rendered masks.
+fn write_outputs(
+    args: &SynthOptions,
+    index: u64,
+    sampled: &SampledScene,
+    frames: &[Frame],
+    render: &SceneRender,
+    extra: serde_json::Value,
+) -> Result<()> {
+    let out = args.out.as_path();
     let size = args.size;
-    let tracer = Tracer::new(scene, None)?;
-    for (v, frame) in sampled.frames.iter().enumerate() {
-        let view = tracer.render(frame);
-        let stem = view_stem(v);
-        writer::write_png(&dir.join(format!("{stem}.png")), &view.rgb, size, size, 3)?;
-        writer::write_png(
-            &dir.join(format!("{stem}.mask.png")),
-            &view.mask,
-            size,
-            size,
-            1,
-        )?;
+    let mut scene = sampled.scene.clone();
+    for (k, object) in scene.objects.iter_mut().enumerate() {
+        let id = (k + 1) as u8;
+        object.visible_pixels = render
+            .views
+            .iter()
+            .map(|v| v.mask.iter().filter(|&&m| m == id).count() as u64)
+            .collect();
     }
     let mut moved_json = serde_json::Value::Null;
-    if let Some(m) = moved {
+    if let Some(m) = args.moved {
         let object = scene.objects.get(m.object - 1).with_context(|| {
             format!(
-                "{shown}: cannot move object {}: the scene has only {} objects",
+                "scene {index}: cannot move object {}: the scene has only {} objects",
                 m.object,
                 scene.objects.len()
             )
         })?;
-        let delta = DVec3::new(m.dx, m.dy, 0.0);
-        let tracer = Tracer::new(scene, Some((m.object, delta)))?;
-        for (v, frame) in sampled.frames.iter().enumerate() {
-            let view = tracer.render(frame);
-            let stem = view_stem(v);
-            writer::write_png(
-                &dir.join(format!("{stem}.moved.png")),
-                &view.rgb,
-                size,
-                size,
-                3,
-            )?;
-            writer::write_png(
-                &dir.join(format!("{stem}.moved.mask.png")),
-                &view.mask,
-                size,
-                size,
-                1,
-            )?;
-        }
         moved_json = json!({
             "object": m.object,
             "by": [m.dx, m.dy, 0.0],
-            "position": (object.center() + delta).to_array(),
+            "position": (object.center() + DVec3::new(m.dx, m.dy, 0.0)).to_array(),
         });
     }
-    let cameras = Cameras {
-        frames: sampled.frames.clone(),
-    };
-    crate::io::write_atomic(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
     let mut doc = json!({
         "format": SCENE_FORMAT,
         "preset": args.preset.name(),
@@ -281,7 +312,74 @@ fn write_scene(args: &SynthOptions, index: u64, out: &Path) -> Result<()> {
     if !moved_json.is_null() {
         doc["moved"] = moved_json;
     }
-    writer::write_json(&dir.join("scene.json"), &doc)
+    if let serde_json::Value::Object(fields) = extra {
+        for (k, v) in fields {
+            doc[k] = v;
+        }
+    }
+    let png = |path: &Path, pixels: &[u8], channels| {
+        writer::write_png(path, pixels, size, size, channels)
+    };
+    match args.layout {
+        OutputLayout::Colf => {
+            let dir = out.join(scene_dir_name(index));
+            let shown = dir.display().to_string();
+            std::fs::create_dir_all(&dir)
+                .with_context(|| format!("{shown}: cannot create the folder"))?;
+            for (v, view) in render.views.iter().enumerate() {
+                let stem = view_stem(v);
+                png(&dir.join(format!("{stem}.png")), &view.rgb, 3)?;
+                png(&dir.join(format!("{stem}.mask.png")), &view.mask, 1)?;
+            }
+            for (v, view) in render.moved.iter().flatten().enumerate() {
+                let stem = view_stem(v);
+                png(&dir.join(format!("{stem}.moved.png")), &view.rgb, 3)?;
+                png(&dir.join(format!("{stem}.moved.mask.png")), &view.mask, 1)?;
+            }
+            let cameras = Cameras {
+                frames: frames.to_vec(),
+            };
+            crate::io::write_atomic(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
+            writer::write_json(&dir.join("scene.json"), &doc)
+        }
+        OutputLayout::Uorf => {
+            // OpenGL camera axes → OpenCV (flip the camera's Y and Z).
+            let flip = glam::DMat4::from_diagonal(glam::DVec4::new(1.0, -1.0, -1.0, 1.0));
+            for (v, view) in render.views.iter().enumerate() {
+                let stem = uorf_stem(index, v, args.views);
+                png(&out.join(format!("{stem}.png")), &view.rgb, 3)?;
+                png(&out.join(format!("{stem}_mask.png")), &view.mask, 1)?;
+                let m = frames[v].camera_to_world * flip;
+                let text: String = (0..4)
+                    .map(|r| {
+                        let row = m.row(r);
+                        format!("{} {} {} {}\n", row.x, row.y, row.z, row.w)
+                    })
+                    .collect();
+                crate::io::write_atomic(&out.join(format!("{stem}_RT.txt")), text.as_bytes())?;
+            }
+            for (v, view) in render.moved.iter().flatten().enumerate() {
+                let stem = uorf_stem(index, v, args.views);
+                png(&out.join(format!("{stem}_moved.png")), &view.rgb, 3)?;
+                png(&out.join(format!("{stem}_moved_mask.png")), &view.mask, 1)?;
+            }
+            if let Some(m) = args.moved {
+                let text = format!("{}\n{}\n", m.dx, m.dy);
+                crate::io::write_atomic(
+                    &out.join(format!("{index:03}_movement.txt")),
+                    text.as_bytes(),
+                )?;
+            }
+            writer::write_json(&out.join(format!("sc{index:04}_scene.json")), &doc)
+        }
+    }
+}
+
+/// uORF's flat file stem of view `v` of scene `index`: `{i:05}_sc{index:04}_az{v:02}` with
+/// i = index·views + v.
+pub fn uorf_stem(index: u64, v: usize, views: usize) -> String {
+    let i = index * views as u64 + v as u64;
+    format!("{i:05}_sc{index:04}_az{v:02}")
 }
 
 /// Fails if some scene lacks the object to move (sampling the objects alone is cheap).
@@ -317,12 +415,34 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     check_moved_object(args)?;
     std::fs::create_dir_all(out).with_context(|| format!("{shown}: cannot create the folder"))?;
     let done = AtomicUsize::new(0);
-    (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
-        write_scene(args, index, out)?;
+    let report = || {
         let k = done.fetch_add(1, Ordering::Relaxed) as u64 + 1;
         progress(Progress { done: k, total: n });
-        Ok(())
-    })?;
+    };
+    match &args.engine {
+        Engine::Analytic => {
+            (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
+                let sampled = sample(
+                    args.preset,
+                    args.seed,
+                    args.split,
+                    index,
+                    args.size,
+                    args.views,
+                )?;
+                let render = render_analytic(&sampled, args.moved)?;
+                let frames = layout_frames(&sampled.frames, args.layout);
+                write_outputs(args, index, &sampled, &frames, &render, json!({}))?;
+                report();
+                Ok(())
+            })?;
+        }
+        Engine::Blender(b) => blender::run(args, b, &|index, sampled, frames, render, extra| {
+            write_outputs(args, index, sampled, frames, render, extra)?;
+            report();
+            Ok(())
+        })?,
+    }
     let dataset = json!({
         "format": DATASET_FORMAT,
         "preset": args.preset.name(),
@@ -331,8 +451,16 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
         "scenes": n,
         "size": args.size,
         "views": args.views,
-        "layout": "scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}",
+        "layout": match args.layout {
+            OutputLayout::Colf => "scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}",
+            OutputLayout::Uorf => "{i:05}_sc{scene:04}_az{view:02}{.png, _mask.png, _RT.txt}, sc{scene:04}_scene.json",
+        },
     });
+    let mut dataset = dataset;
+    if let Engine::Blender(b) = &args.engine {
+        dataset["engine"] = json!("blender");
+        dataset["samples"] = json!(b.samples);
+    }
     writer::write_json(&out.join("dataset.json"), &dataset)?;
     Ok(n)
 }
