@@ -184,6 +184,105 @@ pub fn pending_signal() -> Option<Interrupted> {
     }
 }
 
+/// An output file being written (see [`write_atomic_with`] for the rules): a temporary file
+/// beside a regular file, renamed over it by [`AtomicOutput::commit`]; dropped uncommitted, it
+/// is deleted and the old file kept. A device or FIFO is written through.
+pub struct AtomicOutput {
+    shown: String,
+    target: PathBuf,
+    sink: Sink,
+}
+
+enum Sink {
+    Temp(LiveTemp, std::io::BufWriter<std::fs::File>),
+    Through(std::io::BufWriter<std::fs::File>),
+}
+
+impl AtomicOutput {
+    /// Opens `path` for writing.
+    pub fn create(path: &Path) -> Result<AtomicOutput> {
+        let shown = path.display().to_string();
+        let buffered = |file: std::fs::File| std::io::BufWriter::with_capacity(1 << 16, file);
+        let target = match std::fs::metadata(path) {
+            Ok(meta) if !meta.is_file() => {
+                let file = std::fs::OpenOptions::new()
+                    .write(true)
+                    .open(path)
+                    .with_context(|| format!("{shown}: cannot open for writing"))?;
+                return Ok(AtomicOutput {
+                    shown,
+                    target: path.to_path_buf(),
+                    sink: Sink::Through(buffered(file)),
+                });
+            }
+            Ok(_) if path.is_symlink() => std::fs::canonicalize(path)
+                .with_context(|| format!("{shown}: cannot resolve the link"))?,
+            _ => path.to_path_buf(),
+        };
+        let dir = match target.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        // Outputs are ordinary files: readable by others, like any file a shell redirect makes
+        // (tempfile's default of 0600 would otherwise survive the rename).
+        let mut builder = tempfile::Builder::new();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            builder.permissions(std::fs::Permissions::from_mode(0o644));
+        }
+        builder.prefix(".colf-tmp-");
+        let mut tmp = LiveTemp::create(&builder, &dir).with_context(|| {
+            format!(
+                "{shown}: cannot create a temporary file in {}",
+                dir.display()
+            )
+        })?;
+        let file = tmp
+            .file()
+            .try_clone()
+            .with_context(|| format!("{shown}: cannot create a temporary file"))?;
+        Ok(AtomicOutput {
+            shown,
+            target,
+            sink: Sink::Temp(tmp, buffered(file)),
+        })
+    }
+
+    /// Flushes and syncs the file and renames it over the target (a device: flushes).
+    pub fn commit(self) -> Result<()> {
+        let shown = self.shown;
+        match self.sink {
+            Sink::Through(mut w) => w.flush().with_context(|| format!("{shown}: write failed")),
+            Sink::Temp(tmp, w) => {
+                let file = w
+                    .into_inner()
+                    .map_err(|e| e.into_error())
+                    .with_context(|| format!("{shown}: write failed"))?;
+                file.sync_all()
+                    .with_context(|| format!("{shown}: write failed"))?;
+                drop(file);
+                tmp.persist(&self.target)
+                    .with_context(|| format!("{shown}: cannot replace the file"))
+            }
+        }
+    }
+}
+
+impl Write for AtomicOutput {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        match &mut self.sink {
+            Sink::Temp(_, w) | Sink::Through(w) => w.write(buf),
+        }
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        match &mut self.sink {
+            Sink::Temp(_, w) | Sink::Through(w) => w.flush(),
+        }
+    }
+}
+
 /// Writes `bytes` to `path`; see [`write_atomic_with`].
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes).map_err(Into::into))
@@ -201,47 +300,9 @@ pub fn write_atomic_with(
     path: &Path,
     write: impl FnOnce(&mut dyn Write) -> Result<()>,
 ) -> Result<()> {
-    let shown = path.display();
-    let target = match std::fs::metadata(path) {
-        Ok(meta) if !meta.is_file() => return write_through(path, write),
-        Ok(_) if path.is_symlink() => std::fs::canonicalize(path)
-            .with_context(|| format!("{shown}: cannot resolve the link"))?,
-        _ => path.to_path_buf(),
-    };
-    let dir = match target.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d,
-        _ => Path::new("."),
-    };
-    // Outputs are ordinary files: readable by others, like any file a shell redirect makes
-    // (tempfile's default of 0600 would otherwise survive the rename).
-    #[cfg(unix)]
-    let permissions = {
-        use std::os::unix::fs::PermissionsExt;
-        std::fs::Permissions::from_mode(0o644)
-    };
-    let mut builder = tempfile::Builder::new();
-    #[cfg(unix)]
-    builder.permissions(permissions);
-    builder.prefix(".colf-tmp-");
-    let mut tmp = LiveTemp::create(&builder, dir).with_context(|| {
-        format!(
-            "{shown}: cannot create a temporary file in {}",
-            dir.display()
-        )
-    })?;
-    {
-        let mut buffered = std::io::BufWriter::with_capacity(1 << 16, tmp.file());
-        write(&mut buffered).with_context(|| format!("{shown}: write failed"))?;
-        buffered
-            .flush()
-            .with_context(|| format!("{shown}: write failed"))?;
-    }
-    tmp.file()
-        .sync_all()
-        .with_context(|| format!("{shown}: write failed"))?;
-    tmp.persist(&target)
-        .with_context(|| format!("{shown}: cannot replace the file"))?;
-    Ok(())
+    let mut out = AtomicOutput::create(path)?;
+    write(&mut out).with_context(|| format!("{}: write failed", path.display()))?;
+    out.commit()
 }
 
 /// Checks, before a long run, that [`write_atomic`] will be able to write `path`: it is not a
@@ -263,19 +324,6 @@ pub fn check_writable(path: &Path) -> Result<()> {
     LiveTemp::create(&builder, dir)
         .map(drop)
         .with_context(|| format!("{shown}: cannot write in {}", dir.display()))
-}
-
-/// Writes to an existing file that is not a regular file (a device, a FIFO) in place.
-fn write_through(path: &Path, write: impl FnOnce(&mut dyn Write) -> Result<()>) -> Result<()> {
-    let shown = path.display();
-    let file = std::fs::OpenOptions::new()
-        .write(true)
-        .open(path)
-        .with_context(|| format!("{shown}: cannot open for writing"))?;
-    let mut buffered = std::io::BufWriter::with_capacity(1 << 16, file);
-    write(&mut buffered)
-        .and_then(|_| buffered.flush().map_err(Into::into))
-        .with_context(|| format!("{shown}: write failed"))
 }
 
 /// Writes a stage's output: stdout for `-` (refused when stdout is a terminal and the data is
