@@ -208,7 +208,7 @@ pub fn encode_png_grey(w: u32, h: u32, grey: &[u8]) -> Vec<u8> {
 }
 
 /// Value in [0, 1] → nearest 8-bit value; NaN → 0 (a saturating cast).
-fn to_u8(v: f32) -> u8 {
+pub fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 

@@ -21,10 +21,16 @@ compositor weights)\n\n\
   DIR/S.exr        with --exr: float channels R, G, B; bg.weight and bg.order for the \
 background; slotK.weight and slotK.order for slot K (compositor weight in [0, 1] and the \
 world-comparable ordering value)\n\n\
-Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written atomically; a progress line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The hypernetwork \
-runs once per slot per run; rays are evaluated in chunks of a few hundred, one chunk per thread \
-at a time, so memory stays bounded whatever the image size or slot count and the output does not \
-depend on the number of threads.\n\n\
+Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written \
+atomically (a frame's files appear together, after the frame is rendered); SIGINT or SIGTERM \
+removes the temporary files and exits 130 or 143, leaving finished frames intact. A progress \
+line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The \
+hypernetwork runs once per slot per run; rays are evaluated in chunks of a few hundred, one chunk \
+per thread at a time, and the output does not depend on the number of threads. An exact render \
+is rendered and written in bands of about 65536 pixels, the PNG and mask streamed row by row, so \
+its memory does not grow with the image size; with --exr a frame's float channels, 4 x (5 + 2K) \
+bytes a pixel, are gathered before its EXR is written, and --adaptive renders a whole frame at \
+once (docs/reliability.md has the measured figures).\n\n\
 Without --adaptive the render is exact. --adaptive [EPS] first renders the compositor weights \
 at 1/4 resolution, dilates each slot's weight map by one coarse pixel, and then evaluates a slot \
 at full resolution only where that weight exceeds EPS (default 0.03); the background is always \
@@ -96,7 +102,8 @@ pub struct RenderArgs {
 pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     use crate::camera::Cameras;
     use crate::codes::Codes;
-    use crate::io::{display_name, write_atomic};
+    use crate::io::display_name;
+    use crate::render::output::FrameFiles;
     use crate::render::PreparedScene;
     use anyhow::Context;
     use std::path::Path;
@@ -140,20 +147,36 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     let total = names.len();
     for (n, (index, name)) in range.zip(&names).enumerate() {
         let started = std::time::Instant::now();
-        let (frame, stats) = scene
-            .render_frame_with(&cameras.frames[index], &opts)
-            .with_context(|| format!("frame {index}"))?;
-        let png = crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
-        write_atomic(&out_dir.join(format!("{name}.png")), &png)?;
-        if args.masks {
-            write_atomic(
-                &out_dir.join(format!("{name}.mask.png")),
-                &frame.mask_png()?,
-            )?;
-        }
-        if args.exr {
-            write_atomic(&out_dir.join(format!("{name}.exr")), &frame.exr_bytes()?)?;
-        }
+        let camera = &cameras.frames[index];
+        let (width, height) = (camera.intrinsics.w, camera.intrinsics.h);
+        let mut files = FrameFiles::create(
+            out_dir,
+            name,
+            (width, height),
+            scene.num_slots(),
+            args.masks,
+            args.exr,
+        )?;
+        let stats = if opts.adaptive.is_some() {
+            // The adaptive render's coarse pass sees the whole frame.
+            let (frame, stats) = scene
+                .render_frame_with(camera, &opts)
+                .with_context(|| format!("frame {index}"))?;
+            files.write_band(&frame)?;
+            stats
+        } else {
+            // Exact: rendered and written in bands of rows, so memory does not grow with the
+            // image (but for the EXR's channels).
+            let rows = (BAND_PIXELS / width as usize).max(1) as u32;
+            for start in (0..height).step_by(rows as usize) {
+                let band = scene
+                    .render_rows(camera, start..(start + rows).min(height), &opts)
+                    .with_context(|| format!("frame {index}"))?;
+                files.write_band(&band)?;
+            }
+            None
+        };
+        files.commit()?;
         if !args.quiet {
             let adaptive = stats.map_or(String::new(), |s| {
                 format!(
@@ -164,8 +187,8 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
             eprintln!(
                 "colf-render: {}/{total} {name} ({}x{}, {} slots) {:.0} ms{adaptive}",
                 n + 1,
-                frame.width,
-                frame.height,
+                width,
+                height,
                 scene.num_slots(),
                 started.elapsed().as_secs_f64() * 1e3
             );
@@ -173,6 +196,10 @@ pub fn run(args: &RenderArgs) -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// Pixels rendered and written at a time by an exact render: a band of rows of about this
+/// many pixels (a few MB of working memory whatever the image size).
+const BAND_PIXELS: usize = 1 << 16;
 
 /// The files frame `first + n` writes (`S.png`, and `S.mask.png`, `S.exr` when asked), for
 /// stems `names`; an error names the two frames that would write the same file (`x` and

@@ -1,7 +1,7 @@
 //! What `colf-render` writes for one frame: the sRGB PNG, the segmentation mask and the EXR
 //! with float colour plus each slot's compositor weight and ordering value.
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
 /// One rendered frame. Per-slot arrays are pixel-major with `1 + num_slots` entries per pixel:
@@ -139,6 +139,202 @@ impl FrameRender {
     }
 }
 
+/// An output file shared by a PNG stream writer (which owns its sink) and the code that
+/// commits the file when the stream is done.
+#[derive(Clone)]
+struct SharedOutput(std::rc::Rc<std::cell::RefCell<crate::io::AtomicOutput>>);
+
+impl std::io::Write for SharedOutput {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.borrow_mut().write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.0.borrow_mut().flush()
+    }
+}
+
+/// A PNG written row by row into an output file.
+struct PngRows {
+    file: SharedOutput,
+    stream: png::StreamWriter<'static, SharedOutput>,
+    shown: String,
+}
+
+impl PngRows {
+    fn create(
+        path: &Path,
+        w: u32,
+        h: u32,
+        colour: png::ColorType,
+        depth: png::BitDepth,
+    ) -> Result<PngRows> {
+        let shown = path.display().to_string();
+        let file = SharedOutput(std::rc::Rc::new(std::cell::RefCell::new(
+            crate::io::AtomicOutput::create(path)?,
+        )));
+        let mut encoder = png::Encoder::new(file.clone(), w, h);
+        encoder.set_color(colour);
+        encoder.set_depth(depth);
+        encoder.set_compression(png::Compression::Balanced);
+        encoder.set_filter(png::Filter::Adaptive);
+        let stream = encoder
+            .write_header()
+            .and_then(|w| w.into_stream_writer())
+            .map_err(|e| anyhow!("{shown}: write failed: {e}"))?;
+        Ok(PngRows {
+            file,
+            stream,
+            shown,
+        })
+    }
+
+    fn write_rows(&mut self, bytes: &[u8]) -> Result<()> {
+        use std::io::Write;
+        self.stream
+            .write_all(bytes)
+            .map_err(|e| anyhow!("{}: write failed: {e}", self.shown))
+    }
+
+    fn commit(self) -> Result<()> {
+        let PngRows {
+            file,
+            stream,
+            shown,
+        } = self;
+        stream
+            .finish()
+            .map_err(|e| anyhow!("{shown}: write failed: {e}"))?;
+        let file = std::rc::Rc::try_unwrap(file.0)
+            .map_err(|_| anyhow!("internal error: {shown} is still being written"))?;
+        file.into_inner().commit()
+    }
+}
+
+/// The files of one frame (`S.png`, and `S.mask.png` and `S.exr` when asked), written as its
+/// row bands arrive: the PNGs stream row by row, so their memory does not grow with the image;
+/// the EXR's float channels are gathered and written whole at the end. Nothing replaces an
+/// existing file until [`FrameFiles::commit`]; dropped before, every temporary file goes.
+pub struct FrameFiles {
+    width: u32,
+    num_slots: usize,
+    png: PngRows,
+    mask: Option<PngRows>,
+    exr: Option<(std::path::PathBuf, FrameRender)>,
+}
+
+impl FrameFiles {
+    /// Opens the files of a `width`×`height` frame with `num_slots` slots at `base` + `.png`,
+    /// `.mask.png` (with `masks`) and `.exr` (with `exr`).
+    pub fn create(
+        dir: &Path,
+        name: &str,
+        (width, height): (u32, u32),
+        num_slots: usize,
+        masks: bool,
+        exr: bool,
+    ) -> Result<FrameFiles> {
+        let png = PngRows::create(
+            &dir.join(format!("{name}.png")),
+            width,
+            height,
+            png::ColorType::Rgb,
+            png::BitDepth::Eight,
+        )?;
+        let mask = masks
+            .then(|| {
+                let depth = if num_slots < 255 {
+                    png::BitDepth::Eight
+                } else {
+                    png::BitDepth::Sixteen
+                };
+                PngRows::create(
+                    &dir.join(format!("{name}.mask.png")),
+                    width,
+                    height,
+                    png::ColorType::Grayscale,
+                    depth,
+                )
+            })
+            .transpose()?;
+        let exr = exr.then(|| {
+            (
+                dir.join(format!("{name}.exr")),
+                FrameRender {
+                    width,
+                    height: 0,
+                    num_slots,
+                    rgb: Vec::new(),
+                    weights: Vec::new(),
+                    ordering: Vec::new(),
+                },
+            )
+        });
+        Ok(FrameFiles {
+            width,
+            num_slots,
+            png,
+            mask,
+            exr,
+        })
+    }
+
+    /// Writes the next rows of the frame (a band as wide as the frame).
+    pub fn write_band(&mut self, band: &FrameRender) -> Result<()> {
+        band.validate()?;
+        if band.width != self.width || band.num_slots != self.num_slots {
+            bail!("internal error: a band does not match its frame");
+        }
+        let bytes: Vec<u8> = band
+            .rgb
+            .iter()
+            .map(|&v| crate::image_io::to_u8(v))
+            .collect();
+        self.png.write_rows(&bytes)?;
+        if let Some(mask) = &mut self.mask {
+            let labels = band.labels();
+            let bytes: Vec<u8> = if self.num_slots < 255 {
+                labels.iter().map(|&l| l as u8).collect()
+            } else {
+                labels
+                    .iter()
+                    .flat_map(|&l| (l.min(u16::MAX as u32) as u16).to_be_bytes())
+                    .collect()
+            };
+            mask.write_rows(&bytes)?;
+        }
+        if let Some((_, whole)) = &mut self.exr {
+            whole.height += band.height;
+            whole.rgb.extend_from_slice(&band.rgb);
+            whole.weights.extend_from_slice(&band.weights);
+            whole.ordering.extend_from_slice(&band.ordering);
+        }
+        Ok(())
+    }
+
+    /// Finishes every file and puts them in place.
+    pub fn commit(self) -> Result<()> {
+        // The EXR is encoded before any file is renamed, so an encoding error leaves none.
+        let exr = match &self.exr {
+            Some((path, whole)) => {
+                let bytes = whole.exr_bytes()?;
+                let mut out = crate::io::AtomicOutput::create(path)?;
+                std::io::Write::write_all(&mut out, &bytes)
+                    .with_context(|| format!("{}: write failed", path.display()))?;
+                Some(out)
+            }
+            None => None,
+        };
+        self.png.commit()?;
+        if let Some(mask) = self.mask {
+            mask.commit()?;
+        }
+        if let Some(out) = exr {
+            out.commit()?;
+        }
+        Ok(())
+    }
+}
+
 /// Reads the named float channels of an EXR file (for tests and tools): name → values.
 pub fn read_exr_channels(path: &Path) -> Result<std::collections::BTreeMap<String, Vec<f32>>> {
     use exr::prelude::*;
@@ -220,6 +416,52 @@ mod tests {
         for _ in 0..5 {
             assert!(frame.exr_bytes().unwrap() == first, "EXR bytes differ");
         }
+    }
+
+    /// Rows `rows` of `f` as a band.
+    fn band(f: &FrameRender, rows: std::ops::Range<usize>) -> FrameRender {
+        let (w, per) = (f.width as usize, 1 + f.num_slots);
+        FrameRender {
+            width: f.width,
+            height: rows.len() as u32,
+            num_slots: f.num_slots,
+            rgb: f.rgb[3 * w * rows.start..3 * w * rows.end].to_vec(),
+            weights: f.weights[per * w * rows.start..per * w * rows.end].to_vec(),
+            ordering: f.ordering[per * w * rows.start..per * w * rows.end].to_vec(),
+        }
+    }
+
+    #[test]
+    fn frames_written_in_bands_equal_frames_written_whole() {
+        let (w, h, slots) = (7usize, 5usize, 2usize);
+        let per = slots + 1;
+        let wave = |n: usize, k: f32| (0..n).map(|i| (i as f32 * k).sin().abs()).collect();
+        let whole = FrameRender {
+            width: w as u32,
+            height: h as u32,
+            num_slots: slots,
+            rgb: wave(3 * w * h, 0.37),
+            weights: wave(per * w * h, 0.11),
+            ordering: wave(per * w * h, 0.05),
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let mut files = FrameFiles::create(dir.path(), "f", (7, 5), slots, true, true).unwrap();
+        for rows in [0..2, 2..3, 3..5] {
+            files.write_band(&band(&whole, rows)).unwrap();
+        }
+        files.commit().unwrap();
+        let read = |name: &str| std::fs::read(dir.path().join(name)).unwrap();
+        let rgb = crate::image_io::decode_rgb(&read("f.png"), "f.png").unwrap();
+        let expected = crate::image_io::encode_png_rgb(7, 5, &whole.rgb);
+        assert_eq!(rgb, crate::image_io::decode_rgb(&expected, "e").unwrap());
+        let labels = crate::image_io::decode_labels(&read("f.mask.png"), "m").unwrap();
+        assert_eq!(labels.2, whole.labels());
+        assert_eq!(read("f.exr"), whole.exr_bytes().unwrap());
+        // Dropped before commit: no file, no temporary file.
+        let mut files = FrameFiles::create(dir.path(), "g", (7, 5), slots, true, true).unwrap();
+        files.write_band(&band(&whole, 0..2)).unwrap();
+        drop(files);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 3);
     }
 
     #[test]

@@ -93,6 +93,58 @@ impl PreparedScene {
         Ok(self.render_frame_with(frame, &RenderOptions::default())?.0)
     }
 
+    /// Renders rows `rows` of `frame` exactly: the same values as those rows of
+    /// [`PreparedScene::render_frame_with`] (every ray is rendered on its own), for a frame
+    /// rendered and written in bands.
+    pub fn render_rows(
+        &self,
+        frame: &Frame,
+        rows: std::ops::Range<u32>,
+        opts: &RenderOptions,
+    ) -> Result<FrameRender> {
+        self.check_options(opts)?;
+        if opts.adaptive.is_some() {
+            bail!("internal error: adaptive rendering needs the whole frame");
+        }
+        let w = frame.intrinsics.w;
+        let rays: Vec<crate::camera::Ray> = rows
+            .clone()
+            .flat_map(|j| (0..w).map(move |i| (i, j)))
+            .map(|(i, j)| frame.pixel_ray(i, j))
+            .collect();
+        let origins: Vec<DVec3> = rays.iter().map(|r| r.origin).collect();
+        let dirs: Vec<DVec3> = rays.iter().map(|r| r.direction).collect();
+        drop(rays);
+        let out = self.renderer.render(&origins, &dirs, opts.samples, None)?;
+        self.checked(w, rows.end - rows.start, out)
+    }
+
+    fn checked(
+        &self,
+        width: u32,
+        height: u32,
+        out: crate::model::RayOutput,
+    ) -> Result<FrameRender> {
+        let frame = FrameRender {
+            width,
+            height,
+            num_slots: self.num_slots(),
+            rgb: out.rgb,
+            weights: out.weights,
+            ordering: out.ordering,
+        };
+        frame.validate()?;
+        if frame
+            .rgb
+            .iter()
+            .chain(&frame.weights)
+            .any(|v| !v.is_finite())
+        {
+            bail!("the model produced non-finite colours or weights");
+        }
+        Ok(frame)
+    }
+
     /// Renders every pixel-centre ray of `frame` with `opts`; for an adaptive render, also
     /// what it evaluated.
     pub fn render_frame_with(
@@ -114,23 +166,7 @@ impl PreparedScene {
                 None,
             ),
         };
-        let frame = FrameRender {
-            width: frame.intrinsics.w,
-            height: frame.intrinsics.h,
-            num_slots: self.num_slots(),
-            rgb: out.rgb,
-            weights: out.weights,
-            ordering: out.ordering,
-        };
-        frame.validate()?;
-        if frame
-            .rgb
-            .iter()
-            .chain(&frame.weights)
-            .any(|v| !v.is_finite())
-        {
-            bail!("the model produced non-finite colours or weights");
-        }
+        let frame = self.checked(frame.intrinsics.w, frame.intrinsics.h, out)?;
         Ok((frame, stats))
     }
 }
