@@ -113,7 +113,7 @@ pub enum EvalCommand {
 
 fn check_inputs(pred: &str, gt: &str) -> Result<()> {
     if pred == "-" && gt == "-" {
-        bail!("PRED and GT cannot both be stdin");
+        return Err(crate::cli::both_stdin("PRED", "GT"));
     }
     Ok(())
 }
