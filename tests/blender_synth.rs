@@ -48,6 +48,13 @@ fn mask(path: &Path) -> Vec<u8> {
     img.to_luma8().into_raw()
 }
 
+/// The share of pixels showing an object in either mask on which the two masks agree.
+fn foreground_agreement(a: &[u8], b: &[u8]) -> f64 {
+    let either = a.iter().zip(b).filter(|(x, y)| **x > 0 || **y > 0);
+    let (same, all) = either.fold((0, 0), |(s, n), (x, y)| (s + (x == y) as usize, n + 1));
+    same as f64 / all as f64
+}
+
 /// Both engines, same seed: the same objects and cameras; Blender's masks hold only valid ids
 /// and, at every projected object centre where the analytic mask shows that object over the
 /// whole 5×5 neighbourhood (visible, away from edges), Blender's mask shows it too.
@@ -87,12 +94,17 @@ fn blender_masks_match_projected_object_centres() {
     .unwrap();
     let n = objects.len() as u8;
     let mut checked = 0;
-    let mut agree = 0usize;
     for (v, frame) in cameras.frames.iter().enumerate() {
         let mb = mask(&sb.join(format!("view_{v:03}.mask.png")));
         let ma = mask(&sa.join(format!("view_{v:03}.mask.png")));
         assert!(mb.iter().all(|&id| id <= n), "ids are 0..={n}");
-        agree += mb.iter().zip(&ma).filter(|(x, y)| x == y).count();
+        // Tessellated meshes versus exact solids: the masks differ only along edges.
+        let share = foreground_agreement(&mb, &ma);
+        eprintln!("view {v}: the masks agree on {share:.4} of the object pixels");
+        assert!(
+            share > 0.85,
+            "view {v}: masks agree on {share:.4} of the object pixels"
+        );
         for (k, o) in objects.iter().enumerate() {
             let id = (k + 1) as u8;
             let Some((u, w)) = frame.project(DVec3::from_array(o.position)) else {
@@ -112,9 +124,6 @@ fn blender_masks_match_projected_object_centres() {
         }
     }
     assert!(checked >= 3, "only {checked} object centres were checkable");
-    // Tessellated meshes versus exact solids: the masks differ only along edges.
-    let share = agree as f64 / (2.0 * 64.0 * 64.0);
-    assert!(share > 0.97, "masks agree on {share:.4} of the pixels");
 }
 
 /// `--layout uorf` with Blender: uORF's flat files, read back by colf's uORF reader with the
@@ -150,10 +159,11 @@ fn blender_uorf_layout_reads_back() {
     for v in 0..2 {
         let name = format!("{v:05}_sc0000_az{v:02}_mask.png");
         let (mb, ma) = (mask(&u.join(&name)), mask(&a.join(&name)));
-        let share = mb.iter().zip(&ma).filter(|(x, y)| x == y).count() as f64 / ma.len() as f64;
+        let share = foreground_agreement(&mb, &ma);
+        eprintln!("{name}: the masks agree on {share:.4} of the object pixels");
         assert!(
-            share > 0.95,
-            "{name}: masks agree on {share:.4} of the pixels"
+            share > 0.8,
+            "{name}: masks agree on {share:.4} of the object pixels"
         );
     }
     for f in [

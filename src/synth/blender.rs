@@ -203,6 +203,9 @@ fn read_views(job: &Value, key: &str, n: usize) -> Result<Vec<RenderedView>> {
 /// Renders the scenes of `args` with Blender: `args.jobs` processes, scene i in process
 /// i mod jobs; `sink` gets each scene as soon as its process reports it done.
 pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> Result<()> {
+    if args.randomize_look {
+        bail!("the randomised look is an analytic-engine feature");
+    }
     if !supports(args.preset) {
         bail!(
             "the Blender engine renders the CLEVR presets clevr567 and packed11, not {}",

@@ -16,6 +16,7 @@
 pub mod blender;
 pub mod geometry;
 pub mod hash;
+pub mod look;
 pub mod presets;
 pub mod render;
 pub mod scene;
@@ -80,6 +81,9 @@ pub struct SynthOptions {
     pub moved: Option<MoveSpec>,
     pub engine: Engine,
     pub layout: OutputLayout,
+    /// Randomise each scene's floor albedo, light, exposure and sensor noise (analytic
+    /// engine; see [`look`]).
+    pub randomize_look: bool,
 }
 
 /// The renderer.
@@ -221,15 +225,41 @@ pub struct SceneRender {
     pub moved: Option<Vec<RenderedView>>,
 }
 
-/// Renders a sampled scene with the analytic tracer.
-fn render_analytic(sampled: &SampledScene, moved: Option<MoveSpec>) -> Result<SceneRender> {
-    let tracer = Tracer::new(&sampled.scene, None)?;
-    let views = sampled.frames.iter().map(|f| tracer.render(f)).collect();
+/// Gives the scene its randomised look: a new light and (for a uniform floor) floor albedo;
+/// returns the look to render with.
+pub fn randomize_look(sampled: &mut SampledScene) -> look::Look {
+    let (look, light, floor) = look::sample_look(sampled.scene_seed);
+    sampled.scene.light = light;
+    if let shading::Ground::Uniform { albedo } = &mut sampled.scene.ground {
+        *albedo = floor;
+    }
+    look
+}
+
+/// Renders a sampled scene with the analytic tracer, in `frames` (the sampled cameras as
+/// written), with `look`.
+fn render_analytic(
+    sampled: &SampledScene,
+    frames: &[Frame],
+    moved: Option<MoveSpec>,
+    look: look::Look,
+) -> Result<SceneRender> {
+    let render_all = |tracer: Tracer| -> Vec<RenderedView> {
+        let tracer = tracer.with_look(look);
+        frames
+            .iter()
+            .enumerate()
+            .map(|(v, f)| tracer.render_view(f, v as u64))
+            .collect()
+    };
+    let views = render_all(Tracer::new(&sampled.scene, None)?);
     let moved = match moved {
         Some(m) => {
             let delta = DVec3::new(m.dx, m.dy, 0.0);
-            let tracer = Tracer::new(&sampled.scene, Some((m.object, delta)))?;
-            Some(sampled.frames.iter().map(|f| tracer.render(f)).collect())
+            Some(render_all(Tracer::new(
+                &sampled.scene,
+                Some((m.object, delta)),
+            )?))
         }
         None => None,
     };
@@ -422,7 +452,7 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     match &args.engine {
         Engine::Analytic => {
             (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
-                let sampled = sample(
+                let mut sampled = sample(
                     args.preset,
                     args.seed,
                     args.split,
@@ -430,9 +460,15 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
                     args.size,
                     args.views,
                 )?;
-                let render = render_analytic(&sampled, args.moved)?;
+                let (look, extra) = if args.randomize_look {
+                    let look = randomize_look(&mut sampled);
+                    (look, json!({ "look": look }))
+                } else {
+                    (look::Look::default(), json!({}))
+                };
                 let frames = layout_frames(&sampled.frames, args.layout);
-                write_outputs(args, index, &sampled, &frames, &render, json!({}))?;
+                let render = render_analytic(&sampled, &frames, args.moved, look)?;
+                write_outputs(args, index, &sampled, &frames, &render, extra)?;
                 report();
                 Ok(())
             })?;
@@ -460,6 +496,9 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     if let Engine::Blender(b) = &args.engine {
         dataset["engine"] = json!("blender");
         dataset["samples"] = json!(b.samples);
+    }
+    if args.randomize_look {
+        dataset["randomize_look"] = json!(true);
     }
     writer::write_json(&out.join("dataset.json"), &dataset)?;
     Ok(n)

@@ -3,11 +3,16 @@
 //! colour, and the exact mask from the pixel-centre ray.
 
 use super::geometry::{ground_hit, Solid};
+use super::hash::mix64;
+use super::look::Look;
 use super::scene::Scene;
-use super::shading::{lambert, linear_to_srgb8, sky, Ground};
+use super::shading::{lambert, linear_to_srgb, linear_to_srgb8, sky, Ground};
 use crate::camera::Frame;
 use anyhow::Result;
 use glam::DVec3;
+use rand::rngs::StdRng;
+use rand::SeedableRng;
+use rand_distr::{Distribution, Normal};
 
 /// Colour samples per pixel: an odd `AA_GRID`×`AA_GRID` grid of cell centres, so the middle
 /// sample is the pixel centre and the mask (taken from the centre ray) agrees with the colour.
@@ -37,6 +42,7 @@ pub struct Tracer {
     ground: Ground,
     sky: bool,
     to_light: DVec3,
+    look: Look,
 }
 
 /// A rendered view: 8-bit sRGB RGB, row-major, and the mask.
@@ -80,7 +86,31 @@ impl Tracer {
             ground: scene.ground.clone(),
             sky: scene.sky,
             to_light: DVec3::from_array(scene.light.direction).normalize(),
+            look: Look::default(),
         })
+    }
+
+    /// The tracer with `look` instead of the reference look.
+    pub fn with_look(mut self, look: Look) -> Tracer {
+        self.look = look;
+        self
+    }
+
+    /// The direction toward the light of colour sample `k` of `n`: the light's direction
+    /// itself for hard shadows, else point k of a fixed golden-angle spiral on the light's
+    /// disc.
+    fn light_sample(&self, k: usize, n: usize) -> DVec3 {
+        let radius = self.look.softness_degrees.to_radians();
+        if radius == 0.0 {
+            return self.to_light;
+        }
+        let l = self.to_light;
+        let a = if l.z.abs() < 0.9 { DVec3::Z } else { DVec3::X };
+        let u = l.cross(a).normalize();
+        let v = l.cross(u);
+        let r = radius * ((k as f64 + 0.5) / n as f64).sqrt();
+        let phi = k as f64 * 2.399_963_229_728_653;
+        (l + r * (phi.cos() * u + phi.sin() * v)).normalize()
     }
 
     /// The first surface along the ray (unit `dir`), if any.
@@ -110,27 +140,39 @@ impl Tracer {
 
     /// Whether anything blocks the light from point `p` (the ground never does: the light is
     /// above the horizon).
-    fn in_shadow(&self, p: DVec3) -> bool {
-        self.parts.iter().any(|part| {
-            part.solid
-                .intersect(p, self.to_light, f64::INFINITY)
-                .is_some()
-        })
+    fn in_shadow(&self, p: DVec3, to_light: DVec3) -> bool {
+        self.parts
+            .iter()
+            .any(|part| part.solid.intersect(p, to_light, f64::INFINITY).is_some())
     }
 
     /// Linear radiance and mask id seen along the ray.
     pub fn trace(&self, origin: DVec3, dir: DVec3) -> (DVec3, u8) {
+        self.trace_lit(origin, dir, self.to_light)
+    }
+
+    /// [`Tracer::trace`] with the light in direction `to_light`.
+    fn trace_lit(&self, origin: DVec3, dir: DVec3, to_light: DVec3) -> (DVec3, u8) {
         match self.first_hit(origin, dir) {
             Some(hit) => {
                 // Offset along the normal, scaled with the distance, so the shadow ray starts
                 // clear of the surface it leaves.
                 let p = origin + hit.t * dir + hit.normal * (1e-9 * (1.0 + hit.t));
-                let facing = hit.normal.dot(self.to_light) > 0.0;
-                let lit = facing && !self.in_shadow(p);
-                (
-                    lambert(hit.albedo, hit.normal, self.to_light, lit),
-                    hit.owner,
-                )
+                let facing = hit.normal.dot(to_light) > 0.0;
+                let lit = facing && !self.in_shadow(p, to_light);
+                let radiance = if self.look == Look::default() {
+                    lambert(hit.albedo, hit.normal, to_light, lit)
+                } else {
+                    let direct = if lit {
+                        hit.normal.dot(to_light).max(0.0)
+                    } else {
+                        0.0
+                    };
+                    hit.albedo
+                        * (self.look.ambient + self.look.diffuse * direct)
+                        * self.look.exposure
+                };
+                (radiance, hit.owner)
             }
             None if self.sky => (sky(dir), 0),
             None => (DVec3::ZERO, 0),
@@ -149,6 +191,18 @@ impl Tracer {
     /// Renders one view: colour as the mean linear radiance of the AA_GRID² stratified
     /// samples, written as 8-bit sRGB; mask from the centre sample.
     pub fn render(&self, frame: &Frame) -> RenderedView {
+        self.render_view(frame, 0)
+    }
+
+    /// [`Tracer::render`] of view number `view` (which seeds the look's sensor noise).
+    pub fn render_view(&self, frame: &Frame, view: u64) -> RenderedView {
+        let sigma = self.look.noise_sigma;
+        let mut noise = (sigma > 0.0).then(|| {
+            (
+                StdRng::seed_from_u64(mix64(self.look.noise_seed ^ view)),
+                Normal::new(0.0, sigma).expect("sigma is finite and positive"),
+            )
+        });
         let (w, h) = (frame.intrinsics.w as usize, frame.intrinsics.h as usize);
         let mut rgb = Vec::with_capacity(3 * w * h);
         let mut mask = Vec::with_capacity(w * h);
@@ -163,7 +217,8 @@ impl Tracer {
                         let u = i as f64 + (sx as f64 + 0.5) / n as f64;
                         let v = j as f64 + (sy as f64 + 0.5) / n as f64;
                         let ray = frame.ray_at(u, v);
-                        let (radiance, id) = self.trace(ray.origin, ray.direction);
+                        let to_light = self.light_sample(sy * n + sx, n * n);
+                        let (radiance, id) = self.trace_lit(ray.origin, ray.direction, to_light);
                         sum += radiance;
                         if sx == centre && sy == centre {
                             centre_id = id;
@@ -171,7 +226,15 @@ impl Tracer {
                     }
                 }
                 let mean = sum / (n * n) as f64;
-                rgb.extend([mean.x, mean.y, mean.z].map(linear_to_srgb8));
+                match &mut noise {
+                    None => rgb.extend([mean.x, mean.y, mean.z].map(linear_to_srgb8)),
+                    Some((rng, normal)) => {
+                        for c in [mean.x, mean.y, mean.z] {
+                            let value = linear_to_srgb(c) + normal.sample(rng);
+                            rgb.push((value.clamp(0.0, 1.0) * 255.0).round() as u8);
+                        }
+                    }
+                }
                 mask.push(centre_id);
             }
         }
@@ -267,5 +330,55 @@ mod tests {
         };
         // Camera +X is world +X with up = +Y: moving +X moves the mask to larger columns.
         assert!(centroid(&after) > centroid(&before) + 3.0);
+    }
+
+    #[test]
+    fn the_look_changes_colour_but_not_the_mask() {
+        let scene = one_sphere_scene();
+        let frame = top_down(33);
+        let reference = Tracer::new(&scene, None).unwrap().render(&frame);
+        let look = Look {
+            exposure: 1.5,
+            noise_sigma: 0.01,
+            noise_seed: 7,
+            softness_degrees: 6.0,
+            ..Look::default()
+        };
+        let tracer = Tracer::new(&scene, None).unwrap().with_look(look);
+        let a = tracer.render_view(&frame, 0);
+        assert_eq!(a.mask, reference.mask);
+        assert_eq!(a.rgb, tracer.render_view(&frame, 0).rgb, "seeded");
+        assert_ne!(
+            a.rgb,
+            tracer.render_view(&frame, 1).rgb,
+            "each view has its own noise"
+        );
+        // Brighter on average (exposure 1.5), and noisy: flat ground is no longer one value.
+        let mean = |v: &[u8]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+        assert!(mean(&a.rgb) > mean(&reference.rgb) + 10.0);
+        let ground: Vec<u8> = (0..5).map(|i| a.rgb[3 * i]).collect();
+        assert!(ground.iter().any(|&g| g != ground[0]), "{ground:?}");
+    }
+
+    #[test]
+    fn a_soft_light_gives_a_penumbra() {
+        // Light low in +X: along the line y = 0 behind the sphere (−X), hard shadows jump from
+        // shadowed to lit; a light of radius 8° gives intermediate values in between.
+        let mut scene = one_sphere_scene();
+        scene.light = Light::new(0.0, 30.0);
+        let hard = Tracer::new(&scene, None).unwrap();
+        let soft = Tracer::new(&scene, None).unwrap().with_look(Look {
+            softness_degrees: 8.0,
+            ..Look::default()
+        });
+        let lit_share = |t: &Tracer, x: f64| {
+            let p = DVec3::new(x, 0.0, 1e-9);
+            (0..9)
+                .filter(|&k| !t.in_shadow(p, t.light_sample(k, 9)))
+                .count()
+        };
+        let xs: Vec<f64> = (0..200).map(|i| -4.0 + 0.02 * i as f64).collect();
+        assert!(xs.iter().all(|&x| [0, 9].contains(&lit_share(&hard, x))));
+        assert!(xs.iter().any(|&x| (1..9).contains(&lit_share(&soft, x))));
     }
 }
