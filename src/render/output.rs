@@ -90,37 +90,68 @@ impl FrameRender {
     /// the background and `slotK.weight` / `slotK.order` for foreground slot K. Dotted names
     /// show up as layers (`slot3`) with channels `weight` and `order` in EXR viewers.
     pub fn exr_bytes(&self) -> Result<Vec<u8>> {
-        use exr::prelude::*;
         self.validate()?;
-        let n = self.pixels();
-        let per = 1 + self.num_slots;
-        let mut channels: Vec<AnyChannel<FlatSamples>> = ["R", "G", "B"]
-            .iter()
+        let mut planes = ExrPlanes::new(self.num_slots);
+        planes.push(self);
+        planes.into_exr(self.width, self.height)
+    }
+}
+
+/// The float channels of an EXR, one plane per channel, gathered band by band (so a frame
+/// written in bands holds each value once).
+struct ExrPlanes {
+    per: usize,
+    /// R, G, B, then per entry (background, slot 0, …) its weight and its order.
+    planes: Vec<Vec<f32>>,
+}
+
+impl ExrPlanes {
+    fn new(num_slots: usize) -> ExrPlanes {
+        let per = 1 + num_slots;
+        ExrPlanes {
+            per,
+            planes: vec![Vec::new(); 3 + 2 * per],
+        }
+    }
+
+    fn push(&mut self, band: &FrameRender) {
+        let per = self.per;
+        for (c, plane) in self.planes[..3].iter_mut().enumerate() {
+            plane.extend(band.rgb.iter().skip(c).step_by(3));
+        }
+        for s in 0..per {
+            self.planes[3 + 2 * s].extend(band.weights.iter().skip(s).step_by(per));
+            self.planes[4 + 2 * s].extend(band.ordering.iter().skip(s).step_by(per));
+        }
+    }
+
+    fn into_exr(self, width: u32, height: u32) -> Result<Vec<u8>> {
+        use exr::prelude::*;
+        let channels: Vec<AnyChannel<FlatSamples>> = self
+            .planes
+            .into_iter()
             .enumerate()
-            .map(|(c, name)| {
-                let v: Vec<f32> = (0..n).map(|p| self.rgb[3 * p + c]).collect();
-                AnyChannel::new(*name, FlatSamples::F32(v))
+            .map(|(i, plane)| {
+                let name = match i {
+                    0 => "R".to_string(),
+                    1 => "G".to_string(),
+                    2 => "B".to_string(),
+                    _ => {
+                        let s = (i - 3) / 2;
+                        let prefix = if s == 0 {
+                            "bg".to_string()
+                        } else {
+                            format!("slot{}", s - 1)
+                        };
+                        let what = if (i - 3) % 2 == 0 { "weight" } else { "order" };
+                        format!("{prefix}.{what}")
+                    }
+                };
+                AnyChannel::new(name.as_str(), FlatSamples::F32(plane))
             })
             .collect();
-        for s in 0..per {
-            let prefix = if s == 0 {
-                "bg".to_string()
-            } else {
-                format!("slot{}", s - 1)
-            };
-            let weight: Vec<f32> = (0..n).map(|p| self.weights[per * p + s]).collect();
-            let order: Vec<f32> = (0..n).map(|p| self.ordering[per * p + s]).collect();
-            channels.push(AnyChannel::new(
-                format!("{prefix}.weight").as_str(),
-                FlatSamples::F32(weight),
-            ));
-            channels.push(AnyChannel::new(
-                format!("{prefix}.order").as_str(),
-                FlatSamples::F32(order),
-            ));
-        }
         let layer = Layer::new(
-            (self.width as usize, self.height as usize),
+            (width as usize, height as usize),
             LayerAttributes::named("colf"),
             // Blocks in increasing order: the compressor runs in parallel, and with the order
             // unspecified the blocks land in completion order (different bytes each run).
@@ -219,7 +250,7 @@ pub struct FrameFiles {
     num_slots: usize,
     png: PngRows,
     mask: Option<PngRows>,
-    exr: Option<(std::path::PathBuf, FrameRender)>,
+    exr: Option<(std::path::PathBuf, ExrPlanes, u32)>,
 }
 
 impl FrameFiles {
@@ -259,14 +290,8 @@ impl FrameFiles {
         let exr = exr.then(|| {
             (
                 dir.join(format!("{name}.exr")),
-                FrameRender {
-                    width,
-                    height: 0,
-                    num_slots,
-                    rgb: Vec::new(),
-                    weights: Vec::new(),
-                    ordering: Vec::new(),
-                },
+                ExrPlanes::new(num_slots),
+                0,
             )
         });
         Ok(FrameFiles {
@@ -302,11 +327,9 @@ impl FrameFiles {
             };
             mask.write_rows(&bytes)?;
         }
-        if let Some((_, whole)) = &mut self.exr {
-            whole.height += band.height;
-            whole.rgb.extend_from_slice(&band.rgb);
-            whole.weights.extend_from_slice(&band.weights);
-            whole.ordering.extend_from_slice(&band.ordering);
+        if let Some((_, planes, rows)) = &mut self.exr {
+            planes.push(band);
+            *rows += band.height;
         }
         Ok(())
     }
@@ -314,10 +337,11 @@ impl FrameFiles {
     /// Finishes every file and puts them in place.
     pub fn commit(self) -> Result<()> {
         // The EXR is encoded before any file is renamed, so an encoding error leaves none.
-        let exr = match &self.exr {
-            Some((path, whole)) => {
-                let bytes = whole.exr_bytes()?;
-                let mut out = crate::io::AtomicOutput::create(path)?;
+        let width = self.width;
+        let exr = match self.exr {
+            Some((path, planes, rows)) => {
+                let bytes = planes.into_exr(width, rows)?;
+                let mut out = crate::io::AtomicOutput::create(&path)?;
                 std::io::Write::write_all(&mut out, &bytes)
                     .with_context(|| format!("{}: write failed", path.display()))?;
                 Some(out)
