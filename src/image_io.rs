@@ -38,6 +38,17 @@ pub const MAX_DECODE_BYTES: u64 = 512 << 20;
 /// the encoder's input size first (see [`decode_rgb_for_encoder`]).
 pub const ENCODE_FULL_RES_PIXELS: u64 = 1 << 20;
 
+/// The width and height a PNG's header declares (nothing is decoded).
+pub fn png_dimensions(bytes: &[u8], name: &str) -> Result<(u32, u32)> {
+    use image::ImageDecoder;
+    image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
+        .map(|d| d.dimensions())
+        .map_err(|e| {
+            let why = e.to_string().replace('\n', " ");
+            anyhow!("{name}: not a valid PNG image: {why}")
+        })
+}
+
 /// Decodes PNG bytes within the decoding limits; `name` (a file name) prefixes every error.
 fn decode_png(bytes: &[u8], name: &str) -> Result<DynamicImage> {
     use image::ImageDecoder;

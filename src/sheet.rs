@@ -79,22 +79,11 @@ pub fn enlarge(image: &RgbImage32, factor: u32, name: &str) -> Result<RgbImage32
 /// Tiles `tiles` row-major into `cols` columns with `gap` pixels of white between them; tiles of
 /// different sizes are placed top-left in cells of the largest size. `None` leaves a cell empty.
 pub fn tile(tiles: &[Option<RgbImage32>], cols: usize, gap: u32) -> Result<RgbImage32> {
-    if cols == 0 || tiles.is_empty() {
-        bail!("a contact sheet needs at least one tile and one column");
-    }
-    let cell_w = tiles.iter().flatten().map(|t| t.w).max().unwrap_or(1);
-    let cell_h = tiles.iter().flatten().map(|t| t.h).max().unwrap_or(1);
-    let rows = tiles.len().div_ceil(cols);
-    // In u128: no product of a usize count and a u32 size can overflow it, so the size check
-    // sees the true size whatever the flags.
-    let side = |n: usize, cell: u32| n as u128 * cell as u128 + (n as u128 + 1) * gap as u128;
-    let (w, h) = (side(cols, cell_w), side(rows, cell_h));
-    if w * h > MAX_SHEET_PIXELS as u128 {
-        bail!(
-            "the contact sheet would be {w}x{h} pixels, more than the {MAX_SHEET_PIXELS} it may have (fewer columns, a smaller gap or scale)"
-        );
-    }
-    let (w, h) = (w as u32, h as u32);
+    let sizes: Vec<Option<(u32, u32)>> = tiles
+        .iter()
+        .map(|t| t.as_ref().map(|t| (t.w, t.h)))
+        .collect();
+    let (w, h, cell_w, cell_h) = sheet_size(&sizes, cols, gap, 1)?;
     let mut data = vec![1.0f32; 3 * (w * h) as usize];
     for (i, t) in tiles.iter().enumerate() {
         let Some(t) = t else { continue };
@@ -107,6 +96,41 @@ pub fn tile(tiles: &[Option<RgbImage32>], cols: usize, gap: u32) -> Result<RgbIm
         }
     }
     Ok(RgbImage32 { w, h, data })
+}
+
+/// The size `(w, h, cell_w, cell_h)` of the sheet of tiles of sizes `sizes` (`None`: an empty
+/// cell) enlarged `scale` times, in `cols` columns with `gap` pixels between them; refused
+/// above [`MAX_SHEET_PIXELS`]. Checked from the PNG headers before any tile is decoded.
+pub fn sheet_size(
+    sizes: &[Option<(u32, u32)>],
+    cols: usize,
+    gap: u32,
+    scale: u32,
+) -> Result<(u32, u32, u32, u32)> {
+    if cols == 0 || sizes.is_empty() {
+        bail!("a contact sheet needs at least one tile and one column");
+    }
+    let cell = |side: fn(&(u32, u32)) -> u32| {
+        sizes.iter().flatten().map(side).max().unwrap_or(1) as u64 * scale as u64
+    };
+    let (cell_w, cell_h) = (cell(|s| s.0), cell(|s| s.1));
+    if cell_w * cell_h > MAX_SHEET_PIXELS {
+        bail!(
+            "a tile enlarged {scale} times would be {cell_w}x{cell_h} pixels, more than the {MAX_SHEET_PIXELS} a sheet may have"
+        );
+    }
+    let (cell_w, cell_h) = (cell_w as u32, cell_h as u32);
+    let rows = sizes.len().div_ceil(cols);
+    // In u128: no product of a usize count and a u32 size can overflow it, so the size check
+    // sees the true size whatever the flags.
+    let side = |n: usize, cell: u32| n as u128 * cell as u128 + (n as u128 + 1) * gap as u128;
+    let (w, h) = (side(cols, cell_w), side(rows, cell_h));
+    if w * h > MAX_SHEET_PIXELS as u128 {
+        bail!(
+            "the contact sheet would be {w}x{h} pixels, more than the {MAX_SHEET_PIXELS} it may have (fewer columns, a smaller gap or scale)"
+        );
+    }
+    Ok((w as u32, h as u32, cell_w, cell_h))
 }
 
 #[cfg(test)]

@@ -15,8 +15,9 @@ cells, and write one PNG. Files whose name ends in .mask.png are label masks (0 
 k = object or slot k): they are shown with one distinct colour per label (background black) \
 instead of as near-black grey. The word `-` in the list leaves a cell empty, so rows can be \
 aligned. Tiles of different sizes sit at the top left of cells of the largest size.\n\n\
-PNG inputs may hold at most 67108864 pixels (8192²) and 512 MiB of decoded pixels, checked from \
-the header before decoding; the sheet (after --scale) may have at most 67108864 pixels.",
+PNG inputs may hold at most 67108864 pixels (8192²) and 512 MiB of decoded pixels, and the \
+sheet (after --scale) at most 67108864 pixels; both are checked from the PNG headers before any \
+tile is decoded.",
     after_help = "Example:\n  colf-sheet --cols 5 input.png orbit/frame_000{0,1,2,3}.png - orbit/frame_000{0,1,2,3}.mask.png -o sheet.png"
 )]
 pub struct SheetArgs {
@@ -44,7 +45,9 @@ pub struct SheetArgs {
 
 /// Runs `colf-sheet`.
 pub fn run(args: &SheetArgs) -> Result<()> {
-    let tiles = args
+    // The sheet's size from the PNG headers first: a sheet too large is refused before any
+    // tile is decoded.
+    let files = args
         .images
         .iter()
         .map(|path| {
@@ -52,7 +55,22 @@ pub fn run(args: &SheetArgs) -> Result<()> {
                 return Ok(None);
             }
             let bytes = crate::io::read_input(path, true)?;
-            let tile = load_tile(&bytes, path, path.ends_with(".mask.png"))?;
+            let size = crate::image_io::png_dimensions(&bytes, path)?;
+            Ok(Some((bytes, size)))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let sizes: Vec<Option<(u32, u32)>> = files.iter().map(|f| f.as_ref().map(|f| f.1)).collect();
+    crate::sheet::sheet_size(&sizes, args.cols, args.gap, args.scale)?;
+    let tiles = args
+        .images
+        .iter()
+        .enumerate()
+        .map(|(i, path)| {
+            if path == "-" {
+                return Ok(None);
+            }
+            let bytes = &files[i].as_ref().expect("read above").0;
+            let tile = load_tile(bytes, path, path.ends_with(".mask.png"))?;
             Ok(Some(enlarge(&tile, args.scale, path)?))
         })
         .collect::<Result<Vec<_>>>()?;
