@@ -425,8 +425,8 @@ impl Slurm {
 
     fn log_tail(&self, file: &str) -> String {
         let log = std::fs::read_to_string(self.dir.path().join(file)).unwrap_or_default();
-        let last_error = log.lines().filter(|l| l.contains("error")).last();
-        match last_error.or(log.lines().last()) {
+        let last_error = log.lines().rev().find(|l| l.contains("error"));
+        match last_error.or(log.lines().next_back()) {
             Some(line) => format!("{file}: {}", line.trim()),
             None => format!("{file} is empty"),
         }
@@ -461,7 +461,7 @@ impl Slurm {
         }
         let key = path.join("munge.key");
         let bytes: Vec<u8> = (0..1024u32)
-            .map(|i| (i * 2_654_435_761 >> 13) as u8)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8)
             .collect();
         std::fs::write(&key, bytes).map_err(|e| e.to_string())?;
         std::fs::set_permissions(&key, std::fs::Permissions::from_mode(0o400))

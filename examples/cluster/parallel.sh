@@ -19,8 +19,8 @@
 # image, its camera file and MODEL; frames: the codes, the cameras and MODEL, recorded by a stamp
 # OUT/NAME/.frames_A-B.done written after the chunk's frames). So after a failed host or job, run
 # the same command again: only what is missing or stale is redone. Every output is written
-# atomically by the colf stages, so a job killed half-way leaves no partial file. A failed job is
-# retried RETRIES times (on another host where there is one) before the run counts it as failed.
+# atomically by the colf stages, so a job killed half-way leaves no partial file. A job is tried
+# up to RETRIES times (a retry goes to another host where there is one) before it counts as failed.
 #
 # Logs: GNU parallel's --joblog, OUT/logs/encode.joblog and OUT/logs/render.joblog (appended by
 # every run: host, start, run time, exit status, command of each job).
@@ -48,7 +48,7 @@ slots=(-j 1)
 while [ $# -gt 0 ]; do
   case $1 in
     -j)
-      [ $# -ge 2 ] && positive "$2" || usage
+      if [ $# -lt 2 ] || ! positive "$2"; then usage; fi
       slots=(-j "$2")
       shift 2
       ;;
@@ -193,6 +193,6 @@ run() { # run PHASE ARGS...: one GNU parallel run, its jobs logged in OUT/logs/P
   fi
 }
 
-run encode bash "$job" encode {} "${encode_flags[@]}" <"$names"
-run render bash "$job" render {1} {2} :::: "$names" ::: $(seq 0 "$CHUNK" $((count - 1)))
+run encode bash "$job" encode '{}' "${encode_flags[@]}" <"$names"
+run render bash "$job" render '{1}' '{2}' :::: "$names" ::: $(seq 0 "$CHUNK" $((count - 1)))
 echo "$me: ${#images[@]} image(s), $count frame(s) each, in $out (logs: $out/logs)" >&2

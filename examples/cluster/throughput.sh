@@ -52,7 +52,10 @@ for encoding in ${ENCODINGS:-default --fast}; do
         rm -rf "$work/out"
         load=$(cut -d' ' -f1 /proc/loadavg)
         times=$({ time COLF=$COLF FRAMES=$frames SIZE=64 CHUNK=$frames ENCODE_FLAGS=$flags \
-          THREADS=$t "$here/parallel.sh" -j "$slots" "$work/in" "$work/out" >/dev/null 2>&1; } 2>&1)
+          THREADS=$t "$here/parallel.sh" -j "$slots" "$work/in" "$work/out" >"$work/log" 2>&1; } 2>&1) || {
+          echo "throughput.sh: error: parallel.sh failed: $(tail -n 1 "$work/log")" >&2
+          exit 1
+        }
         read -r wall user sys <<<"$times"
         awk -v e="$encoding" -v t="$threads" -v j="$slots" -v w="$wall" -v u="$user" -v s="$sys" \
           -v n="$images" -v fr="$frames" -v l="$load" 'BEGIN {
