@@ -38,15 +38,22 @@ pub const MAX_DECODE_BYTES: u64 = 512 << 20;
 /// the encoder's input size first (see [`decode_rgb_for_encoder`]).
 pub const ENCODE_FULL_RES_PIXELS: u64 = 1 << 20;
 
-/// The width and height a PNG's header declares (nothing is decoded).
+/// The width and height a PNG's header declares (nothing is decoded), refused above
+/// [`MAX_DECODE_PIXELS`].
 pub fn png_dimensions(bytes: &[u8], name: &str) -> Result<(u32, u32)> {
     use image::ImageDecoder;
-    image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
+    let (w, h) = image::codecs::png::PngDecoder::new(std::io::Cursor::new(bytes))
         .map(|d| d.dimensions())
         .map_err(|e| {
             let why = e.to_string().replace('\n', " ");
             anyhow!("{name}: not a valid PNG image: {why}")
-        })
+        })?;
+    if w as u64 * h as u64 > MAX_DECODE_PIXELS {
+        bail!(
+            "{name}: the image is {w}x{h} pixels, more than the {MAX_DECODE_PIXELS} colf decodes"
+        );
+    }
+    Ok((w, h))
 }
 
 /// Decodes PNG bytes within the decoding limits; `name` (a file name) prefixes every error.

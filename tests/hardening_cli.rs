@@ -186,6 +186,7 @@ fn interrupt(cmd: &mut StdCommand, delay: Duration, signal: &str) -> ExitStatus 
     let pid = child.id().to_string();
     let _ = StdCommand::new("kill")
         .args([&format!("-{signal}"), &pid])
+        .stderr(Stdio::null())
         .status();
     child.wait().unwrap()
 }
@@ -244,7 +245,7 @@ fn interrupted_render_leaves_no_partial_or_temporary_file() {
         cmd.arg(&codes)
             .arg("--cameras")
             .arg(&cams)
-            .args(["--masks", "--exr", "--out"])
+            .args(["--masks", "--exr", "-q", "--out"])
             .arg(out);
         cmd
     };
