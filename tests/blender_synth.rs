@@ -222,3 +222,33 @@ fn missing_blender_is_one_clear_error() {
         .unwrap();
     assert_eq!(o.status.code(), Some(2), "{o:?}");
 }
+
+/// A Blender that fails, or stops before reporting every scene, is one error line, exit 1.
+#[test]
+fn failing_blender_is_one_clear_error() {
+    use std::os::unix::fs::PermissionsExt;
+    let tmp = tempfile::tempdir().unwrap();
+    for (body, expected) in [
+        (
+            "echo 'ValueError: broken job' >&2; exit 3",
+            "Blender failed (exit status: 3): ValueError: broken job",
+        ),
+        ("exit 0", "Blender exited after 0 of its 2 scenes"),
+    ] {
+        let fake = tmp.path().join("fake-blender");
+        std::fs::write(&fake, format!("#!/bin/sh\n{body}\n")).unwrap();
+        std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+        let o = synth()
+            .arg("--out")
+            .arg(tmp.path().join("o"))
+            .args(["--scenes", "2", "--engine", "blender", "-j", "1"])
+            .env("COLF_BLENDER", &fake)
+            .output()
+            .unwrap();
+        assert_eq!(o.status.code(), Some(1), "{o:?}");
+        let err = String::from_utf8(o.stderr).unwrap();
+        assert!(err.starts_with("colf-synth: error: "), "{err}");
+        assert!(err.contains(expected), "{err}");
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    }
+}

@@ -13,7 +13,9 @@ use std::path::PathBuf;
     about = "Render multi-view synthetic scenes (CLEVR-567 and friends) with masks and cameras",
     long_about = "Render multi-view synthetic scenes with an analytic ray tracer: CLEVR shapes \
 (or cars) on a ground plane, one directional light with hard shadows, Lambertian shading, \
-anti-aliased 8-bit sRGB images, exact object masks and NeRF-convention cameras.\n\n\
+anti-aliased 8-bit sRGB images, exact object masks and NeRF-convention cameras. With \
+--engine blender the same scenes (objects and cameras) of clevr567 or packed11 are rendered by \
+Blender's Cycles instead (CPU path tracing, three area lights, soft shadows).\n\n\
 Each scene goes to DIR/scene_NNNNN/ (index zero-padded to 5 digits) and holds view_NNN.png, \
 view_NNN.mask.png (8-bit grey: 0 = background, k = object k of scene.json, 1-based), \
 transforms.json (camera-to-world, OpenGL camera axes, world +Z up) and scene.json (objects, \

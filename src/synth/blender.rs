@@ -245,12 +245,14 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
         let mut handles = Vec::new();
         for p in 0..jobs {
             let chunk: Vec<Value> = scene_jobs.iter().skip(p).step_by(jobs).cloned().collect();
+            let expected = chunk.len();
             let job = json!({ "samples": blender.samples, "threads": 1, "scenes": chunk });
             let job_path = tmp.path().join(format!("job{p}.json"));
             std::fs::write(&job_path, serde_json::to_vec(&job)?)
                 .with_context(|| format!("{}: cannot write", job_path.display()))?;
             let mut child = Command::new(exe)
-                .args(["-b", "--factory-startup", "--threads", "1", "--python"])
+                .args(["-b", "--factory-startup", "--threads", "1"])
+                .args(["--python-exit-code", "1", "--python"])
                 .arg(&script)
                 .arg("--")
                 .arg(&job_path)
@@ -280,6 +282,7 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
                 });
                 let mut last_lines: Vec<String> = Vec::new();
                 let mut result = Ok(());
+                let mut reported = 0usize;
                 for line in BufReader::new(stdout).lines() {
                     let line = line.unwrap_or_default();
                     if let Some(i) = line.strip_prefix("colf-scene-done ") {
@@ -287,6 +290,7 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
                             continue;
                         }
                         let index: usize = i.trim().parse().context("bad report from Blender")?;
+                        reported += 1;
                         let (s, frames) = &sampled[index];
                         let job = &scene_jobs[index];
                         let k = s.scene.objects.len();
@@ -322,12 +326,19 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
                         .lines()
                         .chain(last_lines.iter().map(String::as_str))
                         .rfind(|l| {
-                            l.contains("Error") || l.contains("error") || l.starts_with("usage")
+                            (l.contains("Error") || l.contains("error") || l.starts_with("usage"))
+                                && !l.contains("script failed")
                         })
                         .unwrap_or("no error message")
                         .trim()
                         .to_string();
                     bail!("{}: Blender failed ({status}): {why}", exe.display());
+                }
+                if reported != expected {
+                    bail!(
+                        "{}: Blender exited after {reported} of its {expected} scenes",
+                        exe.display()
+                    );
                 }
                 Ok(())
             }));

@@ -1,17 +1,23 @@
 //! `colf-synth`: multi-view synthetic scenes with ground truth, rendered by an analytic ray
-//! tracer (no external renderer).
+//! tracer (no external renderer) or, for the CLEVR presets, by Blender's Cycles.
 //!
 //! - [`scene`]: what a scene is, as written to `scene.json`.
 //! - [`presets`]: the scene distributions (clevr567, packed11, clevr567-textured, city).
 //! - [`geometry`]: ray–solid intersection.
 //! - [`shading`]: sRGB, the Lambertian model, ground materials, sky.
+//! - [`look`]: the randomised look (floor, light, exposure, noise).
 //! - [`render`]: the tracer (anti-aliased colour, exact masks).
+//! - [`blender`]: the Blender engine (runs `scripts/blender_clevr.py`).
+//! - [`hash`]: the seed-mixing hash.
 //! - [`writer`]: PNG/JSON files, atomically.
 //!
-//! Layout of an output folder: `DIR/scene_NNNNN/{view_NNN.png, view_NNN.mask.png,
-//! transforms.json, scene.json}` (+ `view_NNN.moved{,.mask}.png` with `--move`), and
-//! `DIR/dataset.json`, written last. Seeds: scene i of split s with base seed S is drawn from
-//! `StdRng::seed_from_u64(scene_seed(S, s, i))`; nothing depends on the thread schedule.
+//! [`run`] takes a [`SynthOptions`] and reports progress through a callback; the command
+//! line is in `crate::cli::synth`. Layout of an output folder (colf layout):
+//! `DIR/scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}`
+//! (+ `view_NNN.moved{,.mask}.png` with a move), and `DIR/dataset.json`, written last; the
+//! uORF layout is flat (see [`uorf_stem`]). Seeds: scene i of split s with base seed S is
+//! drawn from `StdRng::seed_from_u64(scene_seed(S, s, i))`; nothing depends on the thread
+//! schedule.
 
 pub mod blender;
 pub mod geometry;
