@@ -152,7 +152,8 @@ fn bad_inputs_are_one_line_errors() {
             err.contains("small.png") && err.contains("gt.png is 16x12"),
             "{err}"
         );
-        fails_with(eval().args([sub, "-", "-"]), 1, "cannot both be stdin");
+        // A usage error (issue 24).
+        fails_with(eval().args([sub, "-", "-"]), 2, "cannot both be stdin");
     }
     fails_with(
         eval().args(["images", &tiny, &tiny]),
