@@ -431,6 +431,11 @@ fn bad_arguments_fail_with_the_right_exit_code() {
         vec!["--scenes", "2", "--move", "1.5", "0", "0"],
         vec!["--scenes", "2", "--move", "1", "0"],
         vec!["--scenes", "2", "--split", "val"],
+        vec!["--scenes", "2", "--layout", "flat"],
+        vec!["--scenes", "2", "--engine", "povray"],
+        vec!["--scenes", "2", "--engine", "blender", "--randomize-look"],
+        vec!["--scenes", "2", "--engine", "blender", "--preset", "city"],
+        vec!["--scenes", "2", "--engine", "blender", "--samples", "0"],
     ] {
         let o = synth().arg("--out").arg(&out).args(&args).output().unwrap();
         assert_eq!(o.status.code(), Some(2), "{args:?}: {o:?}");
