@@ -295,7 +295,11 @@ fn bad_inputs_leave_no_output() {
         .arg(dir.path().join("r"))
         .output()
         .unwrap();
-    one_line_error(&out, "render", "frames 7..9 reach beyond the 4 frames of the file");
+    one_line_error(
+        &out,
+        "render",
+        "frames 7..9 reach beyond the 4 frames of the file",
+    );
     let out = bin("colf-render").args(["--out", "x"]).output().unwrap();
     assert_eq!(out.status.code(), Some(2));
 }
