@@ -371,8 +371,10 @@ fn refined_encoding_fits_the_input_view_and_is_deterministic() {
     assert!(after > before + 0.5, "refined {after} dB vs {before} dB");
 
     let bad = dir.path().join("bad.codes");
+    // Out of range: a usage error naming the flag (issue 24).
     let out = encode_refined(&bad, &["--refine", "3", "--refine-lr", "-1"]);
-    one_line_error(&out, "encode", "learning rate");
+    assert_eq!(out.status.code(), Some(2), "{out:?}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--refine-lr"));
     assert!(!bad.exists());
     let out = encode_refined(&bad, &["--refine", "many"]);
     assert_eq!(out.status.code(), Some(2));

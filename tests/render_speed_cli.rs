@@ -72,14 +72,12 @@ fn adaptive_renders_deterministically_and_a_large_eps_leaves_only_the_background
         colf::image_io::read_labels(dir.path().join("bg/view_001.mask.png").to_str().unwrap())
             .unwrap();
     assert!(labels.iter().all(|&l| l == 0));
-    // Bad values: one line, exit 1, no output folder.
+    // Bad values: usage errors naming the flag (exit 2, issue 24), no output folder.
     for bad in ["nan", "inf"] {
         let out = dir.path().join(format!("bad_{bad}"));
-        one_line_error(
-            &render(&codes, &cams, &out, &["--adaptive", bad]),
-            "render",
-            "ε",
-        );
+        let run = render(&codes, &cams, &out, &["--adaptive", bad]);
+        assert_eq!(run.status.code(), Some(2), "{run:?}");
+        assert!(String::from_utf8_lossy(&run.stderr).contains("--adaptive"));
         assert!(!out.exists());
     }
     let out = dir.path().join("bad_samples");
@@ -151,11 +149,9 @@ fn a_volumetric_model_encodes_and_renders_end_to_end() {
         "render",
         "light-field models only",
     );
-    one_line_error(
-        &render(&codes, &cams, &out, &["--model", m, "--samples", "0"]),
-        "render",
-        "samples per ray",
-    );
+    let run = render(&codes, &cams, &out, &["--model", m, "--samples", "0"]);
+    assert_eq!(run.status.code(), Some(2), "{run:?}");
+    assert!(String::from_utf8_lossy(&run.stderr).contains("--samples"));
     assert!(!out.exists());
 }
 
