@@ -71,7 +71,7 @@ man:
 #   row 3: the same novel views after the edit;  row 4: their masks
 demo: build
 	@mkdir -p $(DEMO)
-	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q
+	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q --force
 	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
 	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.001 -o $(DEMO)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json

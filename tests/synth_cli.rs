@@ -84,7 +84,10 @@ fn same_seed_same_bytes_other_seed_or_split_other_scenes() {
     assert_eq!(fc[view], fa[view]);
     generate(&d, &["--scenes", "1", "--seed", "8"]);
     assert_ne!(files(&d)[view], fa[view]);
-    generate(&d, &["--scenes", "1", "--seed", "7", "--split", "test"]);
+    generate(
+        &d,
+        &["--scenes", "1", "--seed", "7", "--split", "test", "--force"],
+    );
     let fd = files(&d);
     assert_ne!(fd[view], fa[view]);
     let json = scene_json(&d.join("scene_00000"));
@@ -540,4 +543,36 @@ fn randomized_look_keeps_layouts_cameras_and_masks() {
         "{floors:?}"
     );
     assert!(floors[0] != floors[1], "{floors:?}");
+}
+
+#[test]
+fn a_used_folder_is_refused_unless_forced_and_then_holds_only_the_new_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("data");
+    generate(&out, &["--scenes", "3", "--size", "16"]);
+    std::fs::write(out.join("notes.txt"), "mine").unwrap();
+    // Without --force: one line naming the folder, exit 1, nothing changed.
+    let before = files(&out);
+    let run = synth()
+        .arg("--out")
+        .arg(&out)
+        .args(["--scenes", "1", "--size", "16", "-q"])
+        .output()
+        .unwrap();
+    assert_eq!(run.status.code(), Some(1), "{run:?}");
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("not empty") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(files(&out), before);
+    // With --force: the earlier scenes are gone, the user's file stays.
+    generate(&out, &["--scenes", "1", "--size", "16", "--force"]);
+    assert!(out.join("scene_00000").is_dir());
+    assert!(!out.join("scene_00001").exists() && !out.join("scene_00002").exists());
+    assert_eq!(
+        std::fs::read_to_string(out.join("notes.txt")).unwrap(),
+        "mine"
+    );
 }

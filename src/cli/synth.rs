@@ -89,6 +89,12 @@ pub struct SynthArgs {
     /// without it.
     #[arg(long)]
     pub randomize_look: bool,
+    /// Write into a folder that is not empty: the files of an earlier colf-synth run there
+    /// (dataset.json, scene_NNNNN folders, uORF-layout files) are removed first, other files
+    /// are left alone. Without it a non-empty folder is refused, so stale scenes cannot mix
+    /// with new ones.
+    #[arg(long)]
+    pub force: bool,
     /// No progress on stderr.
     #[arg(short, long)]
     pub quiet: bool,
@@ -145,6 +151,7 @@ impl SynthArgs {
             },
             layout: self.layout,
             randomize_look: self.randomize_look,
+            replace: self.force,
         })
     }
 
@@ -197,6 +204,10 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
     if let Some(m) = options.moved {
         crate::synth::check_moved_object(&options)
             .with_context(|| format!("--move {}", m.object))?;
+    }
+    if !options.replace {
+        crate::synth::clear_output(&options.out, false)
+            .map_err(|e| anyhow::anyhow!("{e:#} (--force replaces an earlier run's scenes)"))?;
     }
     let start = std::time::Instant::now();
     let result = crate::synth::run(&options, &report);

@@ -90,6 +90,9 @@ pub struct SynthOptions {
     /// Randomise each scene's floor albedo, light, exposure and sensor noise (analytic
     /// engine; see [`look`]).
     pub randomize_look: bool,
+    /// Replace the files of an earlier run in `out` (see [`clear_output`]) instead of refusing
+    /// a folder that is not empty.
+    pub replace: bool,
 }
 
 /// The renderer.
@@ -438,6 +441,62 @@ pub fn check_moved_object(args: &SynthOptions) -> Result<()> {
     Ok(())
 }
 
+/// Whether `name` is a file or folder colf-synth writes: `dataset.json`, colf's `scene_NNNNN`
+/// folders, or uORF's flat files (`…_scNNNN_azNN…`, `NNN_movement.txt`, `scNNNN_scene.json`).
+fn written_by_synth(name: &str) -> bool {
+    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
+    name == "dataset.json"
+        || name.strip_prefix("scene_").is_some_and(digits)
+        || name.contains("_sc") && name.contains("_az")
+        || name.strip_suffix("_movement.txt").is_some_and(digits)
+        || name
+            .strip_prefix("sc")
+            .and_then(|n| n.strip_suffix("_scene.json"))
+            .is_some_and(digits)
+}
+
+/// Makes sure scenes of an earlier run cannot mix with this run's: a folder that holds
+/// anything is refused, unless `replace`, when the files colf-synth writes are removed first
+/// (other files are left alone).
+pub fn clear_output(out: &Path, replace: bool) -> Result<()> {
+    let shown = out.display();
+    if !out.is_dir() {
+        // Absent (created later) or not a folder (refused by `run`).
+        return Ok(());
+    }
+    let entries = match std::fs::read_dir(out) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => bail!("{shown}: cannot read the folder: {e}"),
+    };
+    let names: Vec<std::ffi::OsString> = entries
+        .map(|e| e.map(|e| e.file_name()))
+        .collect::<std::io::Result<_>>()
+        .with_context(|| format!("{shown}: cannot read the folder"))?;
+    if names.is_empty() {
+        return Ok(());
+    }
+    if !replace {
+        bail!(
+            "{shown}: the folder is not empty ({} entries); scenes of an earlier run would mix with these",
+            names.len()
+        );
+    }
+    for name in names {
+        if !name.to_str().is_some_and(written_by_synth) {
+            continue;
+        }
+        let path = out.join(&name);
+        let removed = if path.is_dir() && !path.is_symlink() {
+            std::fs::remove_dir_all(&path)
+        } else {
+            std::fs::remove_file(&path)
+        };
+        removed.with_context(|| format!("{}: cannot remove it", path.display()))?;
+    }
+    Ok(())
+}
+
 /// Generates the scenes of `args` into `args.out` (in parallel), then `dataset.json`;
 /// `progress` is called after each scene (from any thread). Returns the number of scenes.
 pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<u64> {
@@ -449,6 +508,7 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     let n = args.scenes;
     // An object to move that some scene lacks fails before anything is rendered.
     check_moved_object(args)?;
+    clear_output(out, args.replace)?;
     std::fs::create_dir_all(out).with_context(|| format!("{shown}: cannot create the folder"))?;
     let done = AtomicUsize::new(0);
     let report = || {
