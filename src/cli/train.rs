@@ -338,48 +338,75 @@ pub struct InitArgs {
 }
 
 /// Runs a training run with progress on stderr.
+impl RunArgs {
+    /// The library's training options; the output path is checked for writability now, so
+    /// a bad path fails before training, not after.
+    pub fn train_options(&self) -> anyhow::Result<crate::train::trainer::TrainOptions> {
+        use crate::train::trainer::TrainOptions;
+        let args = self;
+        let (Some(data), Some(out)) = (args.data.clone(), args.out.clone()) else {
+            anyhow::bail!("--data and --out are required");
+        };
+        crate::io::check_writable(&out)?;
+        Ok(TrainOptions {
+            data,
+            out,
+            init: args.init.clone(),
+            preset: args.preset.clone(),
+            steps: args.steps,
+            batch_scenes: args.batch,
+            views_per_scene: args.views,
+            rays_per_view: args.rays,
+            slots: args.slots,
+            lr: args.lr,
+            warmup: args.warmup,
+            decay_from: args.decay_from,
+            final_lr: args.final_lr,
+            l1_weight: args.l1_weight,
+            latent_weight: args.latent_weight,
+            mask_weight: args.mask_weight,
+            attention_mask_weight: args.attention_mask_weight,
+            object_fraction: args.object_fraction,
+            mask_margin: args.mask_margin,
+            mask_shadow_depth: args.mask_shadow_depth,
+            zero_background: args.zero_background,
+            config_overrides: args.config_overrides.clone(),
+            seed: args.seed,
+            checkpoint_every: args.checkpoint_every,
+            keep_every: args.keep_every,
+            eval_every: args.eval_every,
+            eval_data: args.eval_data.clone(),
+            eval_scenes: args.eval_scenes,
+            max_bad_steps: args.max_bad_steps,
+            max_scenes: args.max_scenes,
+        })
+    }
+}
+
+/// One progress line of a training log line: an evaluation, or the step's figures.
+fn progress_text(line: &serde_json::Value) -> String {
+    let step = line["step"].as_u64().unwrap_or(0);
+    if let Some(eval) = line.get("eval") {
+        return format!("eval @ {step}: {eval}");
+    }
+    let f = |key: &str| line[key].as_f64().unwrap_or(f64::NAN);
+    format!(
+        "loss {:.5} psnr {:.2} obj {:.2} fg {:.3} fg-ari {:.3} slots {:.1} {:.0} rays/s",
+        f("loss"),
+        f("psnr"),
+        f("obj_psnr"),
+        f("fg_share"),
+        f("fg_ari"),
+        f("slots_used"),
+        f("rays_per_s"),
+    )
+}
+
 pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
-    use crate::train::trainer::{TrainOptions, Trainer};
+    use crate::train::trainer::Trainer;
     use std::io::{IsTerminal, Write};
 
-    let (Some(data), Some(out)) = (args.data.clone(), args.out.clone()) else {
-        anyhow::bail!("--data and --out are required");
-    };
-    // The model, its checkpoint and log go beside OUT: a bad path fails now, not after
-    // training.
-    crate::io::check_writable(&out)?;
-    let opts = TrainOptions {
-        data,
-        out,
-        init: args.init.clone(),
-        preset: args.preset.clone(),
-        steps: args.steps,
-        batch_scenes: args.batch,
-        views_per_scene: args.views,
-        rays_per_view: args.rays,
-        slots: args.slots,
-        lr: args.lr,
-        warmup: args.warmup,
-        decay_from: args.decay_from,
-        final_lr: args.final_lr,
-        l1_weight: args.l1_weight,
-        latent_weight: args.latent_weight,
-        mask_weight: args.mask_weight,
-        attention_mask_weight: args.attention_mask_weight,
-        object_fraction: args.object_fraction,
-        mask_margin: args.mask_margin,
-        mask_shadow_depth: args.mask_shadow_depth,
-        zero_background: args.zero_background,
-        config_overrides: args.config_overrides.clone(),
-        seed: args.seed,
-        checkpoint_every: args.checkpoint_every,
-        keep_every: args.keep_every,
-        eval_every: args.eval_every,
-        eval_data: args.eval_data.clone(),
-        eval_scenes: args.eval_scenes,
-        max_bad_steps: args.max_bad_steps,
-        max_scenes: args.max_scenes,
-    };
+    let opts = args.train_options()?;
     // The first SIGINT/SIGTERM stops training at the end of the step, after a checkpoint.
     let stop = crate::io::defer_signals();
     let mut trainer = Trainer::new(opts, args.resume)?;
@@ -417,20 +444,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
             }
         }
         let step = line["step"].as_u64().unwrap_or(0);
-        let text = if let Some(eval) = line.get("eval") {
-            format!("eval @ {step}: {eval}")
-        } else {
-            format!(
-                "loss {:.5} psnr {:.2} obj {:.2} fg {:.3} fg-ari {:.3} slots {:.1} {:.0} rays/s",
-                line["loss"].as_f64().unwrap_or(f64::NAN),
-                line["psnr"].as_f64().unwrap_or(f64::NAN),
-                line["obj_psnr"].as_f64().unwrap_or(f64::NAN),
-                line["fg_share"].as_f64().unwrap_or(f64::NAN),
-                line["fg_ari"].as_f64().unwrap_or(f64::NAN),
-                line["slots_used"].as_f64().unwrap_or(f64::NAN),
-                line["rays_per_s"].as_f64().unwrap_or(f64::NAN),
-            )
-        };
+        let text = progress_text(line);
         match &bar {
             Some(bar) => {
                 bar.set_position(step + 1);
