@@ -175,7 +175,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     if dataset.is_empty() {
         bail!("{}: no scenes found", data.display());
     }
-    let model = crate::model::Colf::load_resolved(args.model.as_deref())?;
+    let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     let encoding = args.fit.encoding(model.config(), args.slots);
     if let Some(dir) = &args.renders {
         std::fs::create_dir_all(dir)
