@@ -14,8 +14,9 @@ use anyhow::{bail, Context, Result};
 use colf::dataset::Dataset;
 use colf::encode::refine::refine_slots;
 use colf::encode::refine::RefineOptions;
+use colf::encode::EncodeOptions;
 use colf::encode::InputView;
-use colf::evaluate::{encode_scene, EvalOptions};
+use colf::evaluate::encode_scene;
 use colf::metrics::psnr;
 use colf::render::PreparedScene;
 use std::path::PathBuf;
@@ -74,13 +75,7 @@ fn main() -> Result<()> {
     let args = parse_args()?;
     let model = colf::cli::model_path::load_model(args.model.as_deref())?;
     let data = Dataset::open(&args.data)?;
-    let eval = EvalOptions {
-        num_slots: model.config().default_slots,
-        seed: 0,
-        tries: 1,
-        refine: RefineOptions::default(),
-        redundant_mse: 0.0,
-    };
+    let eval = EncodeOptions::one_pass(model.config().default_slots);
     let refine = RefineOptions {
         steps: args.steps,
         ..RefineOptions::default()

@@ -1,15 +1,20 @@
 //! The uORF evaluation protocol on a dataset: per scene, view 0 is encoded (slots placed with
-//! view 0's camera), every view is rendered; ARI and FG-ARI are taken on view 0, PSNR, SSIM and
-//! NV-ARI (FG-ARI of the novel views) averaged over the other views; then the mean over scenes.
+//! view 0's camera), every view is rendered; ARI and FG-ARI are taken on view 0, PSNR, SSIM,
+//! NV-ARI and NV-FG-ARI averaged over the other views; then the mean (and the standard
+//! deviation) over scenes.
+//!
+//! NV-ARI is uORF's (`models/uorf_eval_model.py`), as every published CLEVR-567 table uses it:
+//! the adjusted Rand index of the full label maps of a novel view, background included. The
+//! FG-ARI of the novel views (ground-truth object pixels only) is a different number and is
+//! reported as `nv_fg_ari`.
 
 use crate::codes::Codes;
 use crate::dataset::{Dataset, SceneData};
 use crate::encode::{encode_image, EncodeOptions};
 use crate::metrics::{ari, fg_ari, psnr, ssim};
 use crate::model::Colf;
-use crate::encode::refine::RefineOptions;
-use crate::render::PreparedScene;
 use crate::render::output::FrameRender;
+use crate::render::PreparedScene;
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 
@@ -24,8 +29,10 @@ pub struct SceneScores {
     pub input_psnr: Option<f64>,
     pub ari: Option<f64>,
     pub fg_ari: Option<f64>,
-    /// FG-ARI of the novel views, averaged.
+    /// ARI of the novel views' full label maps (background included, as uORF), averaged.
     pub nv_ari: Option<f64>,
+    /// FG-ARI of the novel views, averaged.
+    pub nv_fg_ari: Option<f64>,
     /// Share of ground-truth object pixels (all views) that foreground slots win.
     pub fg_share: Option<f64>,
     /// Foreground slots that win at least one pixel of the input view.
@@ -34,37 +41,84 @@ pub struct SceneScores {
     pub slots_kept: usize,
 }
 
-/// Means over scenes (each mean over the scenes where the score is defined).
-#[derive(Clone, Debug, Default, Serialize)]
+/// Means over scenes (each over the scenes where the score is defined), and for the quality
+/// scores the population standard deviation over the same scenes (`*_std`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct DatasetScores {
     pub scenes: usize,
     pub psnr: Option<f64>,
+    pub psnr_std: Option<f64>,
     pub ssim: Option<f64>,
+    pub ssim_std: Option<f64>,
     pub input_psnr: Option<f64>,
+    pub input_psnr_std: Option<f64>,
     pub ari: Option<f64>,
+    pub ari_std: Option<f64>,
     pub fg_ari: Option<f64>,
+    pub fg_ari_std: Option<f64>,
     pub nv_ari: Option<f64>,
+    pub nv_ari_std: Option<f64>,
+    pub nv_fg_ari: Option<f64>,
+    pub nv_fg_ari_std: Option<f64>,
     pub fg_share: Option<f64>,
     pub slots_used: f64,
     pub slots_kept: f64,
 }
 
-fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+/// The quality scores of [`DatasetScores`] that carry a mean and a standard deviation, by name.
+pub const QUALITY_SCORES: [&str; 7] = [
+    "psnr",
+    "ssim",
+    "input_psnr",
+    "ari",
+    "fg_ari",
+    "nv_ari",
+    "nv_fg_ari",
+];
+
+/// Mean and population standard deviation of the finite values (None when there are none).
+pub fn mean_std(values: impl Iterator<Item = Option<f64>>) -> (Option<f64>, Option<f64>) {
     let v: Vec<f64> = values.flatten().filter(|x| x.is_finite()).collect();
-    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+    if v.is_empty() {
+        return (None, None);
+    }
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
+    (Some(mean), Some(var.sqrt()))
+}
+
+fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
+    mean_std(values).0
 }
 
 impl DatasetScores {
     /// Averages per-scene scores.
     pub fn from_scenes(rows: &[SceneScores]) -> DatasetScores {
+        let stat = |f: fn(&SceneScores) -> Option<f64>| mean_std(rows.iter().map(f));
+        let (psnr, psnr_std) = stat(|r| r.psnr);
+        let (ssim, ssim_std) = stat(|r| r.ssim);
+        let (input_psnr, input_psnr_std) = stat(|r| r.input_psnr);
+        let (ari, ari_std) = stat(|r| r.ari);
+        let (fg_ari, fg_ari_std) = stat(|r| r.fg_ari);
+        let (nv_ari, nv_ari_std) = stat(|r| r.nv_ari);
+        let (nv_fg_ari, nv_fg_ari_std) = stat(|r| r.nv_fg_ari);
         DatasetScores {
             scenes: rows.len(),
-            psnr: mean(rows.iter().map(|r| r.psnr)),
-            ssim: mean(rows.iter().map(|r| r.ssim)),
-            input_psnr: mean(rows.iter().map(|r| r.input_psnr)),
-            ari: mean(rows.iter().map(|r| r.ari)),
-            fg_ari: mean(rows.iter().map(|r| r.fg_ari)),
-            nv_ari: mean(rows.iter().map(|r| r.nv_ari)),
+            psnr,
+            psnr_std,
+            ssim,
+            ssim_std,
+            input_psnr,
+            input_psnr_std,
+            ari,
+            ari_std,
+            fg_ari,
+            fg_ari_std,
+            nv_ari,
+            nv_ari_std,
+            nv_fg_ari,
+            nv_fg_ari_std,
             fg_share: mean(rows.iter().map(|r| r.fg_share)),
             slots_used: mean(rows.iter().map(|r| Some(r.slots_used as f64))).unwrap_or(0.0),
             slots_kept: mean(rows.iter().map(|r| Some(r.slots_kept as f64))).unwrap_or(0.0),
@@ -72,47 +126,25 @@ impl DatasetScores {
     }
 }
 
-/// How scenes are encoded for evaluation.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct EvalOptions {
-    /// Foreground slots K.
-    pub num_slots: usize,
-    /// Seed of the slot noise.
-    pub seed: u64,
-    /// Encodings tried per scene (the best reconstruction of view 0 is kept; 0 counts as 1).
-    pub tries: usize,
-    /// Test-time refinement of the latents on view 0 (`steps: 0`: none).
-    pub refine: RefineOptions,
-    /// Slots view 0 does not need are dropped within this error budget (0: none).
-    pub redundant_mse: f64,
-}
-
 /// Encodes view 0 of `scene` as the protocol does (slots placed with view 0's camera).
-pub fn encode_scene(model: &Colf, scene: &SceneData, opts: &EvalOptions) -> Result<Codes> {
+/// `opts` says how (its camera and source are set from the scene).
+pub fn encode_scene(model: &Colf, scene: &SceneData, opts: &EncodeOptions) -> Result<Codes> {
     let Some(input) = scene.views.first() else {
         bail!("scene {} has no views", scene.name);
     };
-    encode_image(
-        model,
-        &input.image,
-        &EncodeOptions {
-            num_slots: opts.num_slots,
-            prune_mass: None,
-            seed: opts.seed,
-            camera: Some(input.frame.clone()),
-            source: scene.name.clone(),
-            tries: opts.tries.max(1),
-            refine: opts.refine,
-            redundant_mse: opts.redundant_mse,
-        },
-    )
+    let opts = EncodeOptions {
+        camera: Some(input.frame.clone()),
+        source: scene.name.clone(),
+        ..opts.clone()
+    };
+    encode_image(model, &input.image, &opts)
 }
 
 /// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
 pub fn encode_and_render(
     model: &Colf,
     scene: &SceneData,
-    opts: &EvalOptions,
+    opts: &EncodeOptions,
 ) -> Result<(Codes, Vec<FrameRender>)> {
     let codes = encode_scene(model, scene, opts)?;
     let prepared = PreparedScene::new(model, &codes, &scene.name)?;
@@ -130,7 +162,8 @@ pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneSc
         scene: scene.name.clone(),
         ..Default::default()
     };
-    let (mut psnrs, mut ssims, mut nv_aris) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut psnrs, mut ssims) = (Vec::new(), Vec::new());
+    let (mut nv_aris, mut nv_fg_aris) = (Vec::new(), Vec::new());
     let (mut fg_won, mut fg_total) = (0usize, 0usize);
     for (i, (view, render)) in scene.views.iter().zip(renders).enumerate() {
         let (w, h) = (view.image.w, view.image.h);
@@ -172,12 +205,14 @@ pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneSc
                     fg_won += (*l > 0) as usize;
                 }
             }
+            let full = ari(&labels, &gt)?;
             let fga = fg_ari(&labels, &gt)?;
             if i == 0 {
-                row.ari = Some(ari(&labels, &gt)?);
+                row.ari = Some(full);
                 row.fg_ari = fga;
-            } else if let Some(v) = fga {
-                nv_aris.push(v);
+            } else {
+                nv_aris.push(full);
+                nv_fg_aris.extend(fga);
             }
         }
     }
@@ -185,6 +220,7 @@ pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneSc
     row.psnr = avg(&psnrs);
     row.ssim = avg(&ssims);
     row.nv_ari = avg(&nv_aris);
+    row.nv_fg_ari = avg(&nv_fg_aris);
     row.fg_share = (fg_total > 0).then(|| fg_won as f64 / fg_total as f64);
     Ok(row)
 }
@@ -195,7 +231,7 @@ pub fn evaluate(
     model: &Colf,
     data: &Dataset,
     max_scenes: Option<usize>,
-    opts: &EvalOptions,
+    opts: &EncodeOptions,
     mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
 ) -> Result<(DatasetScores, Vec<SceneScores>)> {
     let n = max_scenes.map_or(data.len(), |m| m.min(data.len()));

@@ -1,18 +1,15 @@
 //! CLI tests of `colf-eval`: the real binary on PNGs written by colf's own encoders, stdin,
 //! and the failure paths (one error line, exit 1; usage errors exit 2).
 
+mod common;
+
 use assert_cmd::Command;
 use colf::image_io::{encode_png_grey, encode_png_rgb};
+use common::{fails_with, write};
 use std::path::Path;
 
 fn eval() -> Command {
     Command::cargo_bin("colf-eval").unwrap()
-}
-
-fn write(dir: &Path, name: &str, bytes: &[u8]) -> String {
-    let p = dir.join(name);
-    std::fs::write(&p, bytes).unwrap();
-    p.to_str().unwrap().to_string()
 }
 
 /// A 16x12 RGB test card: a horizontal ramp in red, vertical in green, constant blue.
@@ -34,21 +31,6 @@ fn json(cmd: &mut Command) -> serde_json::Value {
     let text = String::from_utf8(out.stdout).unwrap();
     assert_eq!(text.lines().count(), 1, "not one line: {text}");
     serde_json::from_str(&text).unwrap()
-}
-
-/// Runs and checks the one-line error contract; returns the line.
-fn fails_with(cmd: &mut Command, code: i32, needle: &str) -> String {
-    let out = cmd.output().unwrap();
-    assert_eq!(out.status.code(), Some(code), "{out:?}");
-    let err = String::from_utf8(out.stderr).unwrap();
-    assert!(err.contains(needle), "stderr `{err}` lacks `{needle}`");
-    if code == 1 {
-        assert_eq!(err.trim_end().lines().count(), 1, "not one line: {err}");
-        assert!(err.starts_with("colf-eval: error: "), "{err}");
-        assert!(!err.contains("panicked"), "{err}");
-    }
-    assert!(out.stdout.is_empty(), "data written on failure");
-    err
 }
 
 #[test]
@@ -134,29 +116,38 @@ fn bad_inputs_are_one_line_errors() {
     for sub in ["images", "masks"] {
         fails_with(
             eval().args([sub, "/no/such/pred.png", &gt]),
+            "eval",
             1,
             "/no/such/pred.png: cannot read",
         );
         fails_with(
             eval().args([sub, &truncated, &gt]),
+            "eval",
             1,
             "trunc.png: not a valid PNG image",
         );
         fails_with(
             eval().args([sub, &gt, &garbage]),
+            "eval",
             1,
             "garbage.png: not a valid PNG image",
         );
-        let err = fails_with(eval().args([sub, &small, &gt]), 1, "is 12x16 but");
+        let err = fails_with(eval().args([sub, &small, &gt]), "eval", 1, "is 12x16 but");
         assert!(
             err.contains("small.png") && err.contains("gt.png is 16x12"),
             "{err}"
         );
         // A usage error (issue 24).
-        fails_with(eval().args([sub, "-", "-"]), 2, "cannot both be stdin");
+        fails_with(
+            eval().args([sub, "-", "-"]),
+            "eval",
+            2,
+            "cannot both be stdin",
+        );
     }
     fails_with(
         eval().args(["images", &tiny, &tiny]),
+        "eval",
         1,
         "8x8 is smaller than the 11x11 SSIM window",
     );
@@ -164,11 +155,17 @@ fn bad_inputs_are_one_line_errors() {
 
 #[test]
 fn usage_errors_exit_2() {
-    fails_with(eval().args(["images", "only-one.png"]), 2, "GT.png");
-    fails_with(eval().args(["pixels", "a.png", "b.png"]), 2, "pixels");
-    fails_with(&mut eval(), 2, "Usage");
+    fails_with(eval().args(["images", "only-one.png"]), "eval", 2, "GT.png");
+    fails_with(
+        eval().args(["pixels", "a.png", "b.png"]),
+        "eval",
+        2,
+        "pixels",
+    );
+    fails_with(&mut eval(), "eval", 2, "Usage");
     fails_with(
         eval().args(["masks", "a", "b", "c"]),
+        "eval",
         2,
         "unexpected argument",
     );
@@ -182,4 +179,107 @@ fn help_documents_the_json_of_both_modes() {
     for needle in ["images", "masks", "printed as null", "11x11"] {
         assert!(text.contains(needle), "--help lacks `{needle}`");
     }
+}
+
+/// A one-scene dataset of colf-synth (64², 4 views) in `dir/data`.
+fn dataset(dir: &Path) -> std::path::PathBuf {
+    common::synth_scene(dir, &["--seed", "3", "--split", "test"]);
+    dir.join("data")
+}
+
+#[test]
+fn dataset_scores_follow_the_published_definitions() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dataset(dir.path());
+    let renders = dir.path().join("renders");
+    let doc = json(
+        eval()
+            .arg("--data")
+            .arg(&data)
+            .args(["--fast", "-q", "--renders"])
+            .arg(&renders),
+    );
+    // NV-ARI is uORF's: the ARI of the full label maps (background included) of the novel
+    // views; nv_fg_ari the FG-ARI of the same views.
+    let labels =
+        |p: std::path::PathBuf| colf::image_io::read_labels(p.to_str().unwrap()).unwrap().2;
+    let (mut full, mut fg) = (Vec::new(), Vec::new());
+    for v in 1..4 {
+        let pred = labels(renders.join(format!("scene_00000_v{v}.mask.png")));
+        let gt = labels(data.join(format!("scene_00000/view_{v:03}.mask.png")));
+        full.push(colf::metrics::ari(&pred, &gt).unwrap());
+        fg.extend(colf::metrics::fg_ari(&pred, &gt).unwrap());
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    assert!(
+        (doc["nv_ari"].as_f64().unwrap() - mean(&full)).abs() < 1e-12,
+        "{doc}"
+    );
+    assert!(
+        (doc["nv_fg_ari"].as_f64().unwrap() - mean(&fg)).abs() < 1e-12,
+        "{doc}"
+    );
+    assert_ne!(doc["nv_ari"], doc["nv_fg_ari"]);
+    // One scene: every standard deviation over scenes is 0.
+    for name in [
+        "psnr",
+        "ssim",
+        "input_psnr",
+        "ari",
+        "fg_ari",
+        "nv_ari",
+        "nv_fg_ari",
+    ] {
+        assert_eq!(
+            doc[format!("{name}_std")].as_f64(),
+            Some(0.0),
+            "{name}: {doc}"
+        );
+    }
+}
+
+#[test]
+fn seeds_repeat_the_evaluation_and_report_the_spread() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dataset(dir.path());
+    let run = |extra: &[&str]| {
+        json(
+            eval()
+                .arg("--data")
+                .arg(&data)
+                .args(["--fast", "-q"])
+                .args(extra),
+        )
+    };
+    // --seeds 1 is the plain evaluation.
+    let plain = run(&[]);
+    assert_eq!(run(&["--seeds", "1"]), plain);
+    let two = run(&["--seeds", "2", "--seed", "5"]);
+    assert_eq!(two["seeds"], 2);
+    let per_seed = two["per_seed"].as_array().unwrap();
+    assert_eq!(per_seed.len(), 2);
+    assert_eq!(
+        (per_seed[0]["seed"].as_u64(), per_seed[1]["seed"].as_u64()),
+        (Some(5), Some(1005))
+    );
+    // The first run is the plain evaluation with its seed; the summary is the runs' mean.
+    let seed5 = run(&["--seed", "5"]);
+    assert_eq!(per_seed[0]["psnr"], seed5["psnr"]);
+    let (a, b) = (
+        per_seed[0]["psnr"].as_f64().unwrap(),
+        per_seed[1]["psnr"].as_f64().unwrap(),
+    );
+    assert!(
+        (two["psnr"].as_f64().unwrap() - (a + b) / 2.0).abs() < 1e-9,
+        "{two}"
+    );
+    assert!((two["psnr_seed_std"].as_f64().unwrap() - (a - b).abs() / 2.0).abs() < 1e-9);
+    assert_eq!(two["scenes"], 1);
+    // Out of range: a usage error.
+    fails_with(
+        eval().arg("--data").arg(&data).args(["--seeds", "0"]),
+        "eval",
+        2,
+        "--seeds",
+    );
 }

@@ -122,16 +122,13 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
             .filter(|_| args.image != "-")
             .unwrap_or_else(|| "stdin".into())
     });
-    let encoding = args.fit.encoding(model.config(), args.slots);
     let opts = EncodeOptions {
-        num_slots: encoding.slots,
         prune_mass: args.prune,
-        seed: args.seed,
         camera,
         source,
-        tries: encoding.tries,
-        refine: args.fit.options(encoding.refine, args.seed),
-        redundant_mse: args.fit.redundant_mse(),
+        ..args
+            .fit
+            .encode_options(model.config(), args.slots, args.seed)
     };
     let codes = encode_image(&model, &image, &opts)?;
     codes.write(&args.output)

@@ -32,8 +32,11 @@ distinct colour, black being 0.\n\n\
 Either file may be `-` (stdin), not both. Images of different sizes are an error.\n\n\
 With --data DIR (a colf-synth or uORF-layout dataset), the uORF protocol: per scene, view 0 is \
 encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-ARI are taken \
-on view 0; PSNR, SSIM and NV-ARI (FG-ARI of the novel views) are averaged over the other views; \
-then each score is averaged over the scenes where it is defined. Also reported: input_psnr \
+on view 0; PSNR, SSIM, NV-ARI and NV-FG-ARI are averaged over the other views. NV-ARI is \
+uORF's (models/uorf_eval_model.py), as the published CLEVR-567 tables use it: the ARI of the \
+full label maps of a novel view, background included; nv_fg_ari is the FG-ARI of the novel \
+views, a different number. Scores are then each score is averaged over the scenes where it is defined, and its population standard \
+deviation over those scenes is reported as NAME_std. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
 slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). View 0 is encoded as \
 colf-encode would: with the model's default encoding (its slots, tries and refinement steps on \
@@ -72,6 +75,13 @@ pub struct EvalArgs {
     /// Seed of the slot noise.
     #[arg(long, default_value_t = 0, value_name = "S", requires = "data")]
     pub seed: u64,
+
+    /// Run the whole evaluation N times with encoding seeds S, S + 1000, S + 2000, … and report
+    /// the mean over the runs, the standard deviation over scenes of all runs (`*_std`) and
+    /// over the N runs' means (`*_seed_std`), with each run's summary in `per_seed`.
+    #[arg(long, default_value_t = 1, value_name = "N", requires = "data",
+          value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub seeds: u32,
 
     #[command(flatten)]
     pub fit: crate::cli::FitArgs,
@@ -169,14 +179,31 @@ pub fn run(args: &EvalArgs) -> Result<()> {
 }
 
 /// `colf-eval --data DIR`: the uORF protocol over a dataset; returns the JSON text.
+/// How far apart the encoding seeds of `--seeds` runs are: a run's tries use seeds S … S + tries
+/// − 1, so runs must not share them.
+const SEED_STRIDE: u64 = 1000;
+
+/// Writes a scene's renders and masks into `dir` as SCENE_vN.png and SCENE_vN.mask.png.
+fn write_renders(
+    dir: &std::path::Path,
+    scene: &str,
+    renders: &[crate::render::output::FrameRender],
+) -> Result<()> {
+    for (v, frame) in renders.iter().enumerate() {
+        let base = dir.join(format!("{scene}_v{v}"));
+        let png = crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
+        crate::io::write_atomic(&base.with_extension("png"), &png)?;
+        crate::io::write_atomic(&base.with_extension("mask.png"), &frame.mask_png()?)?;
+    }
+    Ok(())
+}
+
 fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
-    use crate::io::write_atomic;
     let dataset = crate::dataset::Dataset::open(data)?;
     if dataset.is_empty() {
         bail!("{}: no scenes found", data.display());
     }
     let model = crate::cli::model_path::load_model(args.model.as_deref())?;
-    let encoding = args.fit.encoding(model.config(), args.slots);
     if let Some(dir) = &args.renders {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("{}: cannot create the folder", dir.display()))?;
@@ -184,48 +211,53 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let total = args.scenes.map_or(dataset.len(), |n| n.min(dataset.len()));
     let started = std::time::Instant::now();
     let mut render_error = None;
-    let options = crate::evaluate::EvalOptions {
-        num_slots: encoding.slots,
-        seed: args.seed,
-        tries: encoding.tries,
-        refine: args.fit.options(encoding.refine, args.seed),
-        redundant_mse: args.fit.redundant_mse(),
-    };
-    let (scores, rows) = crate::evaluate::evaluate(
-        &model,
-        &dataset,
-        args.scenes,
-        &options,
-        |i, row, renders| {
-            if let Some(dir) = &args.renders {
-                for (v, frame) in renders.iter().enumerate() {
-                    let base = dir.join(format!("{}_v{v}", row.scene));
-                    let png =
-                        crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
-                    let result = write_atomic(&base.with_extension("png"), &png).and_then(|_| {
-                        write_atomic(&base.with_extension("mask.png"), &frame.mask_png()?)
-                    });
-                    if let Err(e) = result {
+    let mut runs = Vec::new();
+    let mut all_rows = Vec::new();
+    for run in 0..args.seeds as u64 {
+        let seed = args.seed.wrapping_add(run * SEED_STRIDE);
+        let options = args.fit.encode_options(model.config(), args.slots, seed);
+        let (scores, rows) = crate::evaluate::evaluate(
+            &model,
+            &dataset,
+            args.scenes,
+            &options,
+            |i, row, renders| {
+                // The first run's renders: what --renders shows.
+                if let (Some(dir), 0) = (&args.renders, run) {
+                    if let Err(e) = write_renders(dir, &row.scene, renders) {
                         render_error.get_or_insert(e);
                     }
                 }
-            }
-            if !args.quiet {
-                let show = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
-                eprintln!(
-                    "colf-eval: {}/{total} {} psnr {} fg-ari {} ({:.1} s)",
-                    i + 1,
-                    row.scene,
-                    show(row.psnr),
-                    show(row.fg_ari),
-                    started.elapsed().as_secs_f64()
-                );
-            }
-        },
-    )?;
-    if let Some(e) = render_error {
-        return Err(e);
+                if !args.quiet {
+                    let show = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
+                    let of_run = if args.seeds > 1 {
+                        format!(" (seed {seed})")
+                    } else {
+                        String::new()
+                    };
+                    eprintln!(
+                        "colf-eval: {}/{total}{of_run} {} psnr {} fg-ari {} ({:.1} s)",
+                        i + 1,
+                        row.scene,
+                        show(row.psnr),
+                        show(row.fg_ari),
+                        started.elapsed().as_secs_f64()
+                    );
+                }
+            },
+        )?;
+        if let Some(e) = render_error.take() {
+            return Err(e);
+        }
+        runs.push((seed, scores));
+        all_rows.extend(rows);
     }
+    let options = args
+        .fit
+        .encode_options(model.config(), args.slots, args.seed);
+    let encoding = args.fit.encoding(model.config(), args.slots);
+    let scores = crate::evaluate::DatasetScores::from_scenes(&all_rows);
+    let rows = all_rows;
     let mut doc = serde_json::to_value(&scores)?;
     doc["data"] = serde_json::json!(data.display().to_string());
     doc["model"] = serde_json::json!(model.identity()?);
@@ -235,6 +267,27 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["redundant_mse"] = serde_json::json!(options.redundant_mse);
     if options.refine.steps > 0 {
         doc["refine"] = serde_json::to_value(options.refine)?;
+    }
+    if args.seeds > 1 {
+        // Over the runs' means (each run scores the same scenes).
+        doc["scenes"] = serde_json::json!(runs[0].1.scenes);
+        doc["seeds"] = serde_json::json!(args.seeds);
+        for name in crate::evaluate::QUALITY_SCORES {
+            let means = runs
+                .iter()
+                .map(|(_, r)| serde_json::to_value(r).ok()?[name].as_f64());
+            let (_, std) = crate::evaluate::mean_std(means);
+            doc[format!("{name}_seed_std")] = serde_json::json!(std);
+        }
+        let per_seed: Vec<serde_json::Value> = runs
+            .iter()
+            .map(|(seed, r)| {
+                let mut v = serde_json::to_value(r).expect("scores serialise");
+                v["seed"] = serde_json::json!(seed);
+                v
+            })
+            .collect();
+        doc["per_seed"] = serde_json::json!(per_seed);
     }
     if args.per_scene {
         doc["per_scene"] = serde_json::to_value(&rows)?;

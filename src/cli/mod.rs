@@ -282,6 +282,25 @@ impl FitArgs {
     }
 
     /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
+    /// The encoding these flags ask for with `model_config`, `slots` (the stage's --slots) and
+    /// slot-noise `seed` (no camera or source: the stage sets them per image).
+    pub fn encode_options(
+        &self,
+        model_config: &crate::model::Config,
+        slots: Option<usize>,
+        seed: u64,
+    ) -> crate::encode::EncodeOptions {
+        let encoding = self.encoding(model_config, slots);
+        crate::encode::EncodeOptions {
+            num_slots: encoding.slots,
+            seed,
+            tries: encoding.tries,
+            refine: self.options(encoding.refine, seed),
+            redundant_mse: self.redundant_mse(),
+            ..crate::encode::EncodeOptions::one_pass(encoding.slots)
+        }
+    }
+
     pub fn options(&self, steps: usize, seed: u64) -> crate::encode::refine::RefineOptions {
         crate::encode::refine::RefineOptions {
             steps,

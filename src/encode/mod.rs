@@ -53,6 +53,21 @@ pub struct EncodeOptions {
 }
 
 impl EncodeOptions {
+    /// One pass of the encoder with `num_slots` slots, seed 0, nothing else (no camera: set
+    /// `camera` and `source` for the image at hand).
+    pub fn one_pass(num_slots: usize) -> EncodeOptions {
+        EncodeOptions {
+            num_slots,
+            prune_mass: None,
+            seed: 0,
+            camera: None,
+            source: String::new(),
+            tries: 1,
+            refine: RefineOptions::default(),
+            redundant_mse: 0.0,
+        }
+    }
+
     /// Refuses values no encoding can use; messages name the setting, the CLIs the flag.
     pub fn check(&self) -> Result<()> {
         if self.num_slots > MAX_ENCODE_SLOTS {
@@ -62,10 +77,7 @@ impl EncodeOptions {
             );
         }
         if !(1..=MAX_ENCODE_TRIES).contains(&self.tries) {
-            bail!(
-                "{} tries is outside 1..={MAX_ENCODE_TRIES}",
-                self.tries
-            );
+            bail!("{} tries is outside 1..={MAX_ENCODE_TRIES}", self.tries);
         }
         if let Some(m) = self.prune_mass {
             if !(0.0..=1.0).contains(&m) {
@@ -282,14 +294,12 @@ mod tests {
         };
         let base = error(&all, &background);
         // No budget: every slot stays.
-        let kept =
-            drop_redundant_slots(&model, all.clone(), &background, &view, 0.0).unwrap();
+        let kept = drop_redundant_slots(&model, all.clone(), &background, &view, 0.0).unwrap();
         assert_eq!(kept, all);
         // Any budget: what is left renders the image within it, in the original order.
         for tolerance in [1e-5, 1e-3, 1e-2] {
             let kept =
-                drop_redundant_slots(&model, all.clone(), &background, &view, tolerance)
-                    .unwrap();
+                drop_redundant_slots(&model, all.clone(), &background, &view, tolerance).unwrap();
             assert!(error(&kept, &background) <= base + tolerance, "{tolerance}");
             let mut rest = all.iter();
             assert!(kept.iter().all(|k| rest.any(|s| s == k)), "order kept");

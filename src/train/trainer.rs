@@ -580,10 +580,7 @@ impl Trainer {
             &self.colf,
             data,
             Some(self.opts.eval_scenes),
-            &crate::evaluate::EvalOptions {
-                num_slots: self.num_slots,
-                ..Default::default()
-            },
+            &crate::encode::EncodeOptions::one_pass(self.num_slots),
             |_, _, _| {},
         )?;
         Ok(Some(scores))
