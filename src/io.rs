@@ -143,6 +143,12 @@ pub fn install_signal_cleanup(stage: &str) -> Result<()> {
         signal_hook::consts::SIGTERM,
     ])
     .context("cannot install the signal handlers")?;
+    // Set by the signal handler itself, at delivery: the main thread can tell that the signal
+    // thread is about to end the process (see [`exiting_on_signal`]).
+    for signal in [signal_hook::consts::SIGINT, signal_hook::consts::SIGTERM] {
+        signal_hook::flag::register(signal, std::sync::Arc::clone(signalled()))
+            .context("cannot install the signal handlers")?;
+    }
     let stage = stage.to_string();
     std::thread::Builder::new()
         .name("colf-signals".into())
@@ -166,6 +172,20 @@ pub fn install_signal_cleanup(stage: &str) -> Result<()> {
         .context("cannot start the signal thread")?;
     let _ = INSTALLED.set(());
     Ok(())
+}
+
+fn signalled() -> &'static std::sync::Arc<std::sync::atomic::AtomicBool> {
+    static SIGNALLED: std::sync::OnceLock<std::sync::Arc<std::sync::atomic::AtomicBool>> =
+        std::sync::OnceLock::new();
+    SIGNALLED.get_or_init(Default::default)
+}
+
+/// True once SIGINT or SIGTERM has arrived in a stage that does not defer them: the signal
+/// thread is removing temporary files and will exit. An error the interruption caused (a
+/// closed stdin, say) must then not be reported as the stage's own.
+pub fn exiting_on_signal() -> bool {
+    use std::sync::atomic::Ordering;
+    signalled().load(Ordering::SeqCst) && !DEFERRED.load(Ordering::SeqCst)
 }
 
 /// From now on the first SIGINT/SIGTERM only sets the returned flag (a stage that checkpoints

@@ -33,6 +33,10 @@ pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
             eprintln!("colf-{stage}: {err:#}");
             std::process::exit(interrupted.exit_code())
         }
+        Err(_) if crate::io::exiting_on_signal() => loop {
+            // The signal thread reports the interruption and exits; this error is its effect.
+            std::thread::park();
+        },
         Err(err) => {
             // `{:#}` joins the context chain on one line: "file: what: why".
             let line = format!("{err:#}").replace('\n', " ");

@@ -5,8 +5,8 @@
 //! changes nothing visible, but deleting or moving its twin in an edit would leave a copy
 //! behind. Slots with no visible content are dropped the same way.
 
-use super::view::InputView;
 use super::latents_and_frames;
+use super::view::InputView;
 use crate::codes::Slot;
 use crate::model::Colf;
 use crate::render::fast::FastRenderer;

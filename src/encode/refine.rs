@@ -9,11 +9,11 @@
 //! image has no more than `rays` pixels), so a step costs one training step's decoder pass on
 //! one view, and the result is the same for the same inputs.
 
-use crate::camera::Frame;
-use crate::image_io::RgbImage32;
 use super::latents_and_frames;
 use super::view::InputView;
+use crate::camera::Frame;
 use crate::codes::Slot;
+use crate::image_io::RgbImage32;
 use crate::metrics::psnr_from_mse;
 use crate::model::{Colf, ColfNet, RayBatch, SceneRays};
 use crate::optim::{Adam, AdamConfig};
@@ -191,8 +191,7 @@ fn check(model: &Colf, views: &[&InputView], opts: &RefineOptions) -> Result<()>
     if opts.rays == 0 {
         bail!("refinement needs at least 1 ray a step");
     }
-    if !(opts.frame_lr.is_finite() && opts.frame_lr >= 0.0 && opts.frame_lr <= MAX_LEARNING_RATE)
-    {
+    if !(opts.frame_lr.is_finite() && opts.frame_lr >= 0.0 && opts.frame_lr <= MAX_LEARNING_RATE) {
         bail!(
             "refinement frame learning rate must be in [0, {MAX_LEARNING_RATE}], not {}",
             opts.frame_lr
