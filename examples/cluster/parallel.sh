@@ -34,15 +34,10 @@
 set -euo pipefail
 
 me=parallel.sh
-die() {
-  echo "$me: error: $*" >&2
-  exit 1
-}
-usage() {
-  echo "usage: $me [-j N | --hosts FILE] IN OUT   (--help for more)" >&2
-  exit 2
-}
-positive() { [[ $1 =~ ^[1-9][0-9]*$ ]]; }
+# shellcheck disable=SC2034  # read by common.sh
+usage_line="[-j N | --hosts FILE] IN OUT"
+# shellcheck source=examples/cluster/common.sh
+. "$(dirname "${BASH_SOURCE[0]}")/common.sh"
 
 slots=(-j 1)
 while [ $# -gt 0 ]; do
@@ -59,8 +54,7 @@ while [ $# -gt 0 ]; do
       shift 2
       ;;
     -h | --help)
-      sed -n '2,/^set -euo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'
-      exit 0
+      show_help "$0"
       ;;
     --)
       shift
@@ -72,37 +66,12 @@ while [ $# -gt 0 ]; do
 done
 [ $# -eq 2 ] || usage
 
-FRAMES=${FRAMES:-8} SIZE=${SIZE:-64} RADIUS=${RADIUS:-12.4} ELEVATION=${ELEVATION:-40}
-CHUNK=${CHUNK:-8} RETRIES=${RETRIES:-1} THREADS=${THREADS:-}
-positive "$CHUNK" || die "CHUNK=$CHUNK: not a positive whole number"
+RETRIES=${RETRIES:-1} THREADS=${THREADS:-}
 positive "$RETRIES" || die "RETRIES=$RETRIES: not a positive whole number"
 [ -z "$THREADS" ] || positive "$THREADS" || die "THREADS=$THREADS: not a positive whole number"
 command -v parallel >/dev/null || die "GNU parallel is not installed (Debian: apt-get install parallel)"
-
-# Absolute paths: the jobs may run on other hosts, in other working folders.
-[ -d "$1" ] || die "$1: no such folder"
-in=$(cd "$1" && pwd)
-mkdir -p "$2/logs" || die "$2: cannot create the output folder"
-out=$(cd "$2" && pwd)
-colf=
-if [ -n "${COLF:-}" ]; then
-  [ -d "$COLF" ] || die "COLF=$COLF: no such folder"
-  colf=$(cd "$COLF" && pwd)/
-fi
-for stage in colf-encode colf-render colf-cameras; do
-  command -v "$colf$stage" >/dev/null || die "$colf$stage: not found (set COLF to the folder of the colf binaries)"
-done
-model=
-if [ -n "${MODEL:-}" ]; then
-  [ -f "$MODEL" ] || die "MODEL=$MODEL: no such file"
-  model=$(cd "$(dirname "$MODEL")" && pwd)/$(basename "$MODEL")
-fi
-read -r -a encode_flags <<<"${ENCODE_FLAGS:-}"
-[ -z "${SLOTS:-}" ] || encode_flags+=(--slots "$SLOTS")
-
-shopt -s nullglob
-images=("$in"/*.png)
-[ ${#images[@]} -gt 0 ] || die "$in: no .png images"
+setup "$1" "$2" colf-encode colf-render colf-cameras
+colf=${colf_dir:+$colf_dir/}
 names="$out/logs/images.txt"
 for img in "${images[@]}"; do
   name=$(basename "$img" .png)

@@ -27,16 +27,11 @@
 set -euo pipefail
 
 me=slurm-submit.sh
-die() {
-  echo "$me: error: $*" >&2
-  exit 1
-}
-usage() {
-  echo "usage: $me [--wait] IN OUT   (--help for more)" >&2
-  exit 2
-}
-positive() { [[ $1 =~ ^[1-9][0-9]*$ ]]; }
+# shellcheck disable=SC2034  # read by common.sh
+usage_line="[--wait] IN OUT"
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+# shellcheck source=examples/cluster/common.sh
+. "$here/common.sh"
 
 wait=
 while [ $# -gt 0 ]; do
@@ -46,8 +41,7 @@ while [ $# -gt 0 ]; do
       shift
       ;;
     -h | --help)
-      sed -n '2,/^set -euo/p' "$0" | sed '$d' | sed 's/^# \{0,1\}//'
-      exit 0
+      show_help "$0"
       ;;
     --)
       shift
@@ -59,39 +53,15 @@ while [ $# -gt 0 ]; do
 done
 [ $# -eq 2 ] || usage
 
-FRAMES=${FRAMES:-8} SIZE=${SIZE:-64} RADIUS=${RADIUS:-12.4} ELEVATION=${ELEVATION:-40}
-CHUNK=${CHUNK:-8} THREADS=${THREADS:-1} ARRAY_LIMIT=${ARRAY_LIMIT:-}
-positive "$CHUNK" || die "CHUNK=$CHUNK: not a positive whole number"
+THREADS=${THREADS:-1} ARRAY_LIMIT=${ARRAY_LIMIT:-}
 positive "$THREADS" || die "THREADS=$THREADS: not a positive whole number"
 [ -z "$ARRAY_LIMIT" ] || positive "$ARRAY_LIMIT" || die "ARRAY_LIMIT=$ARRAY_LIMIT: not a positive whole number"
 command -v sbatch >/dev/null || die "sbatch not found (is this a Slurm login node?)"
-
-[ -d "$1" ] || die "$1: no such folder"
-in=$(cd "$1" && pwd)
-mkdir -p "$2/logs" || die "$2: cannot create the output folder"
-out=$(cd "$2" && pwd)
-colf=
-if [ -n "${COLF:-}" ]; then
-  [ -d "$COLF" ] || die "COLF=$COLF: no such folder"
-  colf=$(cd "$COLF" && pwd)
-fi
-bin() { echo "${colf:+$colf/}$1"; }
-for stage in colf-encode colf-render colf-cameras colf-sheet; do
-  command -v "$(bin $stage)" >/dev/null || die "$(bin $stage): not found (set COLF to the folder of the colf binaries)"
-done
-model=
-if [ -n "${MODEL:-}" ]; then
-  [ -f "$MODEL" ] || die "MODEL=$MODEL: no such file"
-  model=$(cd "$(dirname "$MODEL")" && pwd)/$(basename "$MODEL")
-fi
-read -r -a encode_flags <<<"${ENCODE_FLAGS:-}"
-[ -z "${SLOTS:-}" ] || encode_flags+=(--slots "$SLOTS")
+setup "$1" "$2" colf-encode colf-render colf-cameras colf-sheet
+colf=$colf_dir
 read -r -a sbatch_flags <<<"${SBATCH_FLAGS:-}"
 
 # The images, in the order of the array's task ids.
-shopt -s nullglob
-images=("$in"/*.png)
-[ ${#images[@]} -gt 0 ] || die "$in: no .png images"
 list=$out/logs/images.txt
 for img in "${images[@]}"; do
   printf '%s\n' "$(basename "$img" .png)"
