@@ -1,6 +1,8 @@
 //! `examples/batch/Makefile` under `make -j2`: encodes every image of a folder, renders an orbit
 //! for each, and on a second run re-does only what changed.
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -35,29 +37,8 @@ fn make(dir: &Path, images: &Path, out: &Path) -> String {
 #[test]
 fn batch_makefile_is_incremental() {
     let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    let status = Command::new(env!("CARGO_BIN_EXE_colf-synth"))
-        .args([
-            "--scenes", "2", "--size", "32", "--seed", "3", "-q", "--out",
-        ])
-        .arg(&data)
-        .status()
-        .unwrap();
-    assert!(status.success());
     // Two tiny scenes as a folder of images; the first keeps its camera file.
-    let images = dir.path().join("images");
-    std::fs::create_dir(&images).unwrap();
-    for (i, name) in ["alpha", "beta"].iter().enumerate() {
-        let scene = data.join(format!("scene_{i:05}"));
-        std::fs::copy(
-            scene.join("view_000.png"),
-            images.join(format!("{name}.png")),
-        )
-        .unwrap();
-        if i == 0 {
-            std::fs::copy(scene.join("transforms.json"), images.join("alpha.json")).unwrap();
-        }
-    }
+    let (images, _) = common::photo_folder(dir.path());
     let out = dir.path().join("out");
     let first = make(dir.path(), &images, &out);
     assert!(

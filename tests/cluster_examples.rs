@@ -9,6 +9,8 @@
 //! (`.ci/run` installs them). Where a tool is missing, or the Slurm daemons cannot start (a
 //! container without the privileges), its test prints one line saying so and passes.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -70,30 +72,9 @@ fn find_program(program: &str) -> Option<PathBuf> {
         .find(|p| p.is_file())
 }
 
-/// The test images in `dir/images`: two tiny synthetic scenes' first views, `alpha` with its
-/// camera file (`alpha.json`), `beta` without. Returns the folder and the image names.
+/// The test images in `dir/images` (see `common::photo_folder`; their size is `SIZE`).
 fn images(dir: &Path) -> (PathBuf, Vec<&'static str>) {
-    let data = dir.join("data");
-    ok(colf("colf-synth")
-        .args([
-            "--scenes", "2", "--size", SIZE, "--seed", "3", "-q", "--out",
-        ])
-        .arg(&data));
-    let images = dir.join("images");
-    std::fs::create_dir(&images).unwrap();
-    let names = vec!["alpha", "beta"];
-    for (i, name) in names.iter().enumerate() {
-        let scene = data.join(format!("scene_{i:05}"));
-        std::fs::copy(
-            scene.join("view_000.png"),
-            images.join(format!("{name}.png")),
-        )
-        .unwrap();
-        if i == 0 {
-            std::fs::copy(scene.join("transforms.json"), images.join("alpha.json")).unwrap();
-        }
-    }
-    (images, names)
+    common::photo_folder(dir)
 }
 
 /// What the cluster scripts must produce, made by one process at a time: each image encoded

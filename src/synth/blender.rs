@@ -10,7 +10,7 @@ use super::presets::Preset;
 use super::render::RenderedView;
 use super::scene::spherical;
 use super::shading::albedo_of_srgb8;
-use super::{layout_frames, sample, MoveSpec, SampledScene, SceneRender, SynthOptions};
+use super::{layout_frames, MoveSpec, SampledScene, SceneRender, SynthOptions};
 use crate::camera::Frame;
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;
@@ -224,14 +224,7 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
     let sampled: Vec<(SampledScene, Vec<Frame>)> = (0..n)
         .into_par_iter()
         .map(|index| {
-            let s = sample(
-                args.preset,
-                args.seed,
-                args.split,
-                index,
-                args.size,
-                args.views,
-            )?;
+            let s = args.sample(index)?;
             let frames = layout_frames(&s.frames, args.layout);
             Ok((s, frames))
         })
@@ -382,8 +375,10 @@ mod tests {
 
     #[test]
     fn lights_are_seeded_by_the_scene() {
-        let a = sample(Preset::Clevr567, 0, super::super::Split::Train, 0, 16, 1).unwrap();
-        let b = sample(Preset::Clevr567, 0, super::super::Split::Train, 1, 16, 1).unwrap();
+        let a = super::super::sample(Preset::Clevr567, 0, super::super::Split::Train, 0, 16, 1)
+            .unwrap();
+        let b = super::super::sample(Preset::Clevr567, 0, super::super::Split::Train, 1, 16, 1)
+            .unwrap();
         assert_eq!(lights(&a), lights(&a));
         assert_ne!(lights(&a), lights(&b));
         let key = &lights(&a)["key"]["position"];

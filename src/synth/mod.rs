@@ -95,6 +95,20 @@ pub struct SynthOptions {
     pub replace: bool,
 }
 
+impl SynthOptions {
+    /// Scene `index` of these options: objects, light and cameras (not yet rendered).
+    pub fn sample(&self, index: u64) -> Result<SampledScene> {
+        sample(
+            self.preset,
+            self.seed,
+            self.split,
+            index,
+            self.size,
+            self.views,
+        )
+    }
+}
+
 /// The renderer.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Engine {
@@ -518,14 +532,7 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     match &args.engine {
         Engine::Analytic => {
             (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
-                let mut sampled = sample(
-                    args.preset,
-                    args.seed,
-                    args.split,
-                    index,
-                    args.size,
-                    args.views,
-                )?;
+                let mut sampled = args.sample(index)?;
                 let (look, extra) = if args.randomize_look {
                     let look = randomize_look(&mut sampled);
                     (look, json!({ "look": look }))

@@ -57,3 +57,32 @@ pub fn fails_with(cmd: &mut Command, stage: &str, code: i32, needle: &str) -> St
     assert!(err.contains(needle), "stderr `{err}` lacks `{needle}`");
     err
 }
+
+/// A folder of test photos, `dir/images`: the first views of two tiny (32²) synthetic scenes,
+/// `alpha` with its camera file (`alpha.json`), `beta` without. Returns the folder and the
+/// image names.
+pub fn photo_folder(dir: &Path) -> (PathBuf, Vec<&'static str>) {
+    let data = dir.join("data");
+    bin("colf-synth")
+        .args([
+            "--scenes", "2", "--size", "32", "--seed", "3", "-q", "--out",
+        ])
+        .arg(&data)
+        .assert()
+        .success();
+    let images = dir.join("images");
+    std::fs::create_dir(&images).unwrap();
+    let names = vec!["alpha", "beta"];
+    for (i, name) in names.iter().enumerate() {
+        let scene = data.join(format!("scene_{i:05}"));
+        std::fs::copy(
+            scene.join("view_000.png"),
+            images.join(format!("{name}.png")),
+        )
+        .unwrap();
+        if i == 0 {
+            std::fs::copy(scene.join("transforms.json"), images.join("alpha.json")).unwrap();
+        }
+    }
+    (images, names)
+}
