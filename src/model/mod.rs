@@ -16,8 +16,8 @@ pub mod encoder;
 pub mod frames;
 pub mod fused;
 pub mod grow;
-mod host;
 pub mod heads;
+mod host;
 pub mod hypernet;
 pub mod init;
 pub mod layers;
@@ -29,7 +29,7 @@ pub mod volumetric;
 
 pub use config::Config;
 pub use host::{Colf, Encoded, PreparedSlots, RayOutput};
-pub use net::{ColfNet, Decoded, Decoder, LightFieldDecoder};
 pub use light_field::SlotWeights;
+pub use net::{ColfNet, Decoded, Decoder, LightFieldDecoder};
 pub use rays::{RayBatch, SceneRays};
 pub use slot_attention::SlotOutput;
