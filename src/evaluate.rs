@@ -11,7 +11,7 @@
 use crate::codes::Codes;
 use crate::dataset::{Dataset, SceneData};
 use crate::encode::{encode_image, EncodeOptions};
-use crate::metrics::{ari, fg_ari, psnr, ssim};
+use crate::metrics::{ari, fg_ari, mean_std, psnr, ssim};
 use crate::model::Colf;
 use crate::render::output::FrameRender;
 use crate::render::PreparedScene;
@@ -75,18 +75,6 @@ pub const QUALITY_SCORES: [&str; 7] = [
     "nv_ari",
     "nv_fg_ari",
 ];
-
-/// Mean and population standard deviation of the finite values (None when there are none).
-pub fn mean_std(values: impl Iterator<Item = Option<f64>>) -> (Option<f64>, Option<f64>) {
-    let v: Vec<f64> = values.flatten().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return (None, None);
-    }
-    let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
-    (Some(mean), Some(var.sqrt()))
-}
 
 fn mean(values: impl Iterator<Item = Option<f64>>) -> Option<f64> {
     mean_std(values).0

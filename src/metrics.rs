@@ -238,6 +238,25 @@ pub fn fg_ari(pred: &[u32], gt: &[u32]) -> Result<Option<f64>> {
     ari(&fg_pred, &fg_gt).map(Some)
 }
 
+/// Mean and population standard deviation (divisor n, numpy's `np.std` default) of the finite
+/// values; `None` values (a score undefined for a scene) and non-finite ones (an infinite
+/// PSNR) are left out. `(None, None)` when nothing is left. `colf-eval --data` reports a
+/// score's mean and spread over scenes, and over the runs of `--seeds`, with it.
+pub fn mean_std(values: impl IntoIterator<Item = Option<f64>>) -> (Option<f64>, Option<f64>) {
+    let v: Vec<f64> = values
+        .into_iter()
+        .flatten()
+        .filter(|x| x.is_finite())
+        .collect();
+    if v.is_empty() {
+        return (None, None);
+    }
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / n;
+    (Some(mean), Some(var.sqrt()))
+}
+
 /// The image metrics of `colf-eval images`. JSON: `{"psnr": dB or null, "ssim": …}`; `psnr`
 /// is `null` exactly when the images are identical (PSNR = +inf, which JSON cannot hold; no cap
 /// is used because a cap would collide with real values on large images).
@@ -438,5 +457,29 @@ mod tests {
             serde_json::to_string(&m).unwrap(),
             r#"{"ari":0.5,"fg_ari":null}"#
         );
+    }
+
+    #[test]
+    fn mean_std_is_the_population_spread_of_the_defined_values() {
+        // numpy: np.mean([2, 4, 4, 4, 5, 5, 7, 9]) = 5, np.std(...) = 2.
+        let v = [2.0, 4.0, 4.0, 4.0, 5.0, 5.0, 7.0, 9.0].map(Some);
+        assert_eq!(mean_std(v), (Some(5.0), Some(2.0)));
+        // Undefined (None) and infinite values are left out, not counted as 0.
+        let (m, s) = mean_std([
+            Some(1.0),
+            None,
+            Some(f64::INFINITY),
+            Some(3.0),
+            Some(f64::NAN),
+        ]);
+        assert_eq!((m, s), (Some(2.0), Some(1.0)));
+        // One value: no spread; none: no mean.
+        assert_eq!(mean_std([Some(0.25)]), (Some(0.25), Some(0.0)));
+        assert_eq!(mean_std([None, Some(f64::INFINITY)]), (None, None));
+        assert_eq!(mean_std(std::iter::empty()), (None, None));
+        // Three trials as SlotLifter reports them: 0.1 / sqrt(1.5) for {0.8, 0.9, 1.0}.
+        let (m, s) = mean_std([0.8, 0.9, 1.0].map(Some));
+        close(m.unwrap(), 0.9, 1e-15);
+        close(s.unwrap(), (0.02f64 / 3.0).sqrt(), 1e-14);
     }
 }

@@ -176,7 +176,18 @@ fn help_documents_the_json_of_both_modes() {
     let out = eval().arg("--help").output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
-    for needle in ["images", "masks", "printed as null", "11x11"] {
+    for needle in [
+        "images",
+        "masks",
+        "printed as null",
+        "11x11",
+        "models/uorf_eval_model.py",
+        "background included",
+        "nv_fg_ari",
+        "NAME_std",
+        "NAME_seed_std",
+        "--seeds",
+    ] {
         assert!(text.contains(needle), "--help lacks `{needle}`");
     }
 }

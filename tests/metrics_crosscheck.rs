@@ -1,6 +1,9 @@
 //! `colf-eval` agrees with the reference implementations uORF reports (scikit-image's
 //! `peak_signal_noise_ratio` and `structural_similarity`, scikit-learn's `adjusted_rand_score`)
-//! to 1e-4 on random and structured image and mask pairs (tests/python/metrics_crosscheck.py).
+//! to 1e-4 on random and structured image and mask pairs, and that `colf-eval --data`'s ari,
+//! fg_ari, nv_ari and nv_fg_ari (means and standard deviations over scenes) are those of uORF's
+//! evaluation code recomputed with `adjusted_rand_score` from the renders it saved: NV-ARI of
+//! the full label maps, background included (tests/python/metrics_crosscheck.py).
 //! Needs `python3` with numpy, scipy, Pillow, scikit-image and scikit-learn (`.ci/run` installs
 //! them).
 
@@ -19,6 +22,16 @@ fn colf_eval_agrees_with_scikit_image_and_scikit_learn() {
         ),
     }
     let dir = tempfile::tempdir().unwrap();
+    // Two scenes of colf-synth (64², 4 views) for the dataset scores.
+    let data = dir.path().join("data");
+    let synth = Command::new(env!("CARGO_BIN_EXE_colf-synth"))
+        .args([
+            "--scenes", "2", "-q", "--seed", "3", "--split", "test", "--out",
+        ])
+        .arg(&data)
+        .output()
+        .unwrap();
+    assert!(synth.status.success(), "{synth:?}");
     let out = Command::new("python3")
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
@@ -26,6 +39,7 @@ fn colf_eval_agrees_with_scikit_image_and_scikit_learn() {
         ))
         .arg(env!("CARGO_BIN_EXE_colf-eval"))
         .arg(dir.path())
+        .arg(&data)
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&out.stdout);
@@ -34,10 +48,11 @@ fn colf_eval_agrees_with_scikit_image_and_scikit_learn() {
         "{stdout}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    // Every case ran: 8 image pairs × 2 metrics + 8 mask pairs × 2 metrics.
+    // Every case ran: 8 image pairs × 2 metrics + 8 mask pairs × 2 metrics, 2 scenes × 4
+    // segmentation scores, and the summary's 4 means and 4 standard deviations.
     assert_eq!(
         stdout.lines().filter(|l| l.ends_with(" ok")).count(),
-        32,
+        32 + 8 + 8,
         "{stdout}"
     );
 }

@@ -35,8 +35,11 @@ encoded (slots placed with view 0's camera) and every view rendered; ARI and FG-
 on view 0; PSNR, SSIM, NV-ARI and NV-FG-ARI are averaged over the other views. NV-ARI is \
 uORF's (models/uorf_eval_model.py), as the published CLEVR-567 tables use it: the ARI of the \
 full label maps of a novel view, background included; nv_fg_ari is the FG-ARI of the novel \
-views, a different number. Scores are then each score is averaged over the scenes where it is defined, and its population standard \
-deviation over those scenes is reported as NAME_std. Also reported: input_psnr \
+views, a different number. Each score is averaged over the scenes where it is defined, and its \
+population standard deviation over those scenes is reported as NAME_std. --seeds N repeats the \
+evaluation with N encoding seeds (S, S + 1000, ...): each score is then the mean of the runs' \
+means, NAME_seed_std the standard deviation of the runs' means, and per_seed lists each run's \
+summary. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
 slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). View 0 is encoded as \
 colf-encode would: with the model's default encoding (its slots, tries and refinement steps on \
@@ -178,7 +181,6 @@ pub fn run(args: &EvalArgs) -> Result<()> {
     write_output("-", (json + "\n").as_bytes(), false)
 }
 
-/// `colf-eval --data DIR`: the uORF protocol over a dataset; returns the JSON text.
 /// How far apart the encoding seeds of `--seeds` runs are: a run's tries use seeds S … S + tries
 /// − 1, so runs must not share them.
 const SEED_STRIDE: u64 = 1000;
@@ -198,6 +200,7 @@ fn write_renders(
     Ok(())
 }
 
+/// `colf-eval --data DIR`: the uORF protocol over a dataset; returns the JSON text.
 fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let dataset = crate::dataset::Dataset::open(data)?;
     if dataset.is_empty() {
@@ -276,7 +279,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             let means = runs
                 .iter()
                 .map(|(_, r)| serde_json::to_value(r).ok()?[name].as_f64());
-            let (_, std) = crate::evaluate::mean_std(means);
+            let (_, std) = crate::metrics::mean_std(means);
             doc[format!("{name}_seed_std")] = serde_json::json!(std);
         }
         let per_seed: Vec<serde_json::Value> = runs

@@ -1,14 +1,23 @@
 #!/usr/bin/env python3
 """Cross-check `colf-eval` against the reference implementations uORF uses.
 
-Usage: metrics_crosscheck.py COLF_EVAL_BINARY WORK_DIR
+Usage: metrics_crosscheck.py COLF_EVAL_BINARY WORK_DIR [DATASET_DIR]
 
 Writes random and structured image and mask pairs as PNG (Pillow), runs
 `colf-eval images` / `colf-eval masks` on each, and compares with
 skimage.metrics.peak_signal_noise_ratio, skimage.metrics.structural_similarity
 (gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0,
-channel_axis=-1) and sklearn.metrics.adjusted_rand_score, to 1e-4. Exits 1 on any
-disagreement, naming the case.
+channel_axis=-1) and sklearn.metrics.adjusted_rand_score, to 1e-4.
+
+With DATASET_DIR (a colf-synth dataset), also runs `colf-eval --data DATASET_DIR --fast
+--per-scene --renders R` and recomputes the segmentation scores from the saved masks as uORF's
+evaluation code (models/uorf_eval_model.py) does: ari = adjusted_rand_score of view 0's full
+label maps, fg_ari = the same over view 0's ground-truth foreground pixels, nv_ari =
+adjusted_rand_score of the full label maps (background included) of each novel view, averaged
+over the views, nv_fg_ari = the novel views' FG-ARI, averaged; then the means over scenes and
+their population standard deviations (np.std), the summary's NAME and NAME_std.
+
+Exits 1 on any disagreement, naming the case.
 """
 
 import json
@@ -60,7 +69,7 @@ def check(case, name, ours, ref, failures):
     else:
         same = abs(ours - ref) <= TOL
     status = "ok" if same else "MISMATCH"
-    print(f"{case:28s} {name:7s} colf={ours!s:24s} reference={ref!s:24s} {status}")
+    print(f"{case:28s} {name:13s} colf={ours!s:24s} reference={ref!s:24s} {status}")
     if not same:
         failures.append(f"{case} {name}")
 
@@ -116,6 +125,48 @@ def mask_cases(rng):
     ]
 
 
+def dataset_check(binary, work, data, failures):
+    """The dataset scores of `colf-eval --data` against sklearn on the saved renders."""
+    renders = os.path.join(work, "renders")
+    doc = run(binary, "--data", data, "--fast", "-q", "--per-scene", "--renders", renders)
+    rows = doc["per_scene"]
+    if len(rows) < 2:
+        sys.exit(f"{data}: the dataset check needs at least 2 scenes, found {len(rows)}")
+    names = ("ari", "fg_ari", "nv_ari", "nv_fg_ari")
+    per_scene = {name: [] for name in names}
+    for row in rows:
+        scene = row["scene"]
+        views = sorted(f for f in os.listdir(os.path.join(data, scene)) if f.endswith(".mask.png"))
+        if len(views) < 2:
+            sys.exit(f"{data}/{scene}: no novel view with a mask")
+        full, fg_only = [], []
+        for v, name in enumerate(views):
+            gt = load_labels(os.path.join(data, scene, name))
+            pred = load_labels(os.path.join(renders, f"{scene}_v{v}.mask.png"))
+            fg = gt != 0
+            full.append(adjusted_rand_score(gt, pred))
+            fg_only.append(adjusted_rand_score(gt[fg], pred[fg]) if fg.any() else None)
+        novel_fg = [x for x in fg_only[1:] if x is not None]
+        ref = {
+            "ari": full[0],
+            "fg_ari": fg_only[0],
+            "nv_ari": float(np.mean(full[1:])),
+            "nv_fg_ari": float(np.mean(novel_fg)) if novel_fg else None,
+        }
+        for name in names:
+            check(f"{scene}", name, row[name], ref[name], failures)
+            if ref[name] is not None:
+                per_scene[name].append(ref[name])
+    # The field's NV-ARI includes the background: on these renders it must differ from the
+    # FG-ARI of the same views, or the check above could not tell the two definitions apart.
+    if all(abs(r["nv_ari"] - r["nv_fg_ari"]) < 1e-3 for r in rows):
+        failures.append("dataset: nv_ari equals nv_fg_ari on every scene (definitions not told apart)")
+    for name in names:
+        check("dataset-summary", name, doc[name], float(np.mean(per_scene[name])), failures)
+        check("dataset-summary", f"{name}_std", doc[f"{name}_std"], float(np.std(per_scene[name])),
+              failures)
+
+
 def main():
     binary, work = sys.argv[1], sys.argv[2]
     rng = np.random.default_rng(20230601)
@@ -142,6 +193,8 @@ def main():
         ref_fg = adjusted_rand_score(y[fg], x[fg]) if fg.any() else None
         check(case, "ari", ours["ari"], float(adjusted_rand_score(y, x)), failures)
         check(case, "fg_ari", ours["fg_ari"], ref_fg, failures)
+    if len(sys.argv) > 3:
+        dataset_check(binary, work, sys.argv[3], failures)
     if failures:
         sys.exit(f"colf-eval disagrees with scikit-image/scikit-learn on: {', '.join(failures)}")
 
