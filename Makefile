@@ -9,7 +9,7 @@ RELEASE := target/release
 BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo model bench tradeoff install uninstall clean
+.PHONY: all build test pyenv lint man demo model bench tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -48,6 +48,15 @@ tradeoff: build
 	$(CARGO) build --release --example tradeoff
 	$(RELEASE)/examples/tradeoff --model $(MODEL) --scenes $(TRADEOFF_SCENES) \
 	  --md docs/tradeoff.md --png docs/tradeoff.png
+
+# Fuzz every input parser in-process (docs/fuzzing.md): FUZZ_ITERATIONS seeded, structure-aware
+# mutations each, under a 4 GiB address-space limit; failing inputs go to target/fuzz/<parser>/.
+FUZZ_ITERATIONS ?= 100000
+FUZZ_SEED ?= 1
+fuzz:
+	$(CARGO) build --release --example fuzz
+	/usr/bin/time -v $(RELEASE)/examples/fuzz --iterations $(FUZZ_ITERATIONS) --seed $(FUZZ_SEED) \
+	  --parser all --corpus-out target/fuzz 2> >(grep -E 'FAIL|error|Maximum resident|Elapsed' >&2)
 
 lint:
 	$(CARGO) fmt --check
