@@ -259,6 +259,7 @@ fn load_colf(dir: &Path) -> Result<Vec<View>> {
 
 /// Grey levels of a uORF mask, as PIL's `convert("L")` computes them for colour images.
 pub fn uorf_mask_levels(bytes: &[u8], name: &str) -> Result<(u32, u32, Vec<u8>)> {
+    crate::image_io::check_png_palette(bytes, name)?;
     let img = image::load_from_memory_with_format(bytes, image::ImageFormat::Png).map_err(|e| {
         anyhow!(
             "{name}: not a valid PNG image: {}",

@@ -56,9 +56,24 @@ pub fn png_dimensions(bytes: &[u8], name: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+/// Refuses a PLTE chunk whose length is not a whole number of RGB entries: the png crate
+/// (0.18.1) panics expanding such a palette (found by `make fuzz`, docs/fuzzing.md).
+pub fn check_png_palette(bytes: &[u8], name: &str) -> Result<()> {
+    let mut at = 8usize;
+    while let Some(head) = bytes.get(at..at + 8) {
+        let len = u32::from_be_bytes([head[0], head[1], head[2], head[3]]) as usize;
+        if &head[4..8] == b"PLTE" && !len.is_multiple_of(3) {
+            bail!("{name}: not a valid PNG image: its palette (PLTE) of {len} bytes is not a whole number of RGB entries");
+        }
+        at = at.saturating_add(12).saturating_add(len);
+    }
+    Ok(())
+}
+
 /// Decodes PNG bytes within the decoding limits; `name` (a file name) prefixes every error.
 fn decode_png(bytes: &[u8], name: &str) -> Result<DynamicImage> {
     use image::ImageDecoder;
+    check_png_palette(bytes, name)?;
     // The png decoder's messages can span lines; the contract is one error line.
     let invalid = |e: image::ImageError| {
         let why = e.to_string().replace('\n', " ");
