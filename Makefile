@@ -62,11 +62,12 @@ lint:
 	$(CARGO) fmt --check
 	$(CARGO) clippy --release --all-targets -- -D warnings
 
-# Regenerate man/*.1 from the clap definitions, then check that groff renders them cleanly.
+# Regenerate man/*.1 from the clap definitions, then check that groff renders them cleanly
+# (-k: the pages are UTF-8, as man itself reads them).
 man:
 	COLF_UPDATE_MAN=1 $(CARGO) test --release --test man_pages
 	@for page in man/*.1; do \
-	  out=$$(groff -man -ww -z $$page 2>&1); \
+	  out=$$(groff -k -man -ww -z $$page 2>&1); \
 	  if [ -n "$$out" ]; then echo "$$page: $$out"; exit 1; fi; \
 	done
 	@echo "man pages: $(words $(wildcard man/*.1)) rendered without warnings"

@@ -1,5 +1,7 @@
 use clap::Parser;
-use colf::cli::train::{run_average, run_configure, run_training, TrainArgs, TrainCommand};
+use colf::cli::train::{
+    run_average, run_configure, run_info, run_training, TrainArgs, TrainCommand,
+};
 
 fn main() {
     let args = TrainArgs::parse();
@@ -19,6 +21,7 @@ fn main() {
         }
         Some(TrainCommand::Average(average)) => run_average(average),
         Some(TrainCommand::Configure(configure)) => run_configure(configure),
+        Some(TrainCommand::Info(info)) => run_info(info),
         None => run_training(&args.run),
     })
 }

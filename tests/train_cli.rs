@@ -348,3 +348,116 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
     assert!(stderr.contains("tensors"), "{stderr}");
     assert!(!wider.exists());
 }
+
+/// `colf-train info` of a model file, parsed.
+fn info(model: &Path) -> serde_json::Value {
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("info")
+        .arg(model)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    // A copy of the training set with every mask file deleted: training never needs one.
+    let unlabelled = dir.path().join("unlabelled");
+    for scene in std::fs::read_dir(&data).unwrap() {
+        let scene = scene.unwrap().path();
+        if !scene.is_dir() {
+            continue;
+        }
+        let copy = unlabelled.join(scene.file_name().unwrap());
+        std::fs::create_dir_all(&copy).unwrap();
+        for file in std::fs::read_dir(&scene).unwrap() {
+            let file = file.unwrap().path();
+            let name = file.file_name().unwrap().to_string_lossy().into_owned();
+            if !name.ends_with(".mask.png") {
+                std::fs::copy(&file, copy.join(&name)).unwrap();
+            }
+        }
+    }
+    std::fs::copy(data.join("dataset.json"), unlabelled.join("dataset.json")).unwrap();
+    let first = dir.path().join("first.safetensors");
+    train(&unlabelled, &first, 6, &[]);
+    let described = info(&first);
+    let run = &described["training"][0];
+    assert_eq!(described["training"].as_array().unwrap().len(), 1);
+    assert_eq!(run["masks_in_data"], false);
+    assert_eq!(run["masks_used"], false);
+    assert_eq!(described["masks_used"], false);
+    assert_eq!(run["engine"], "analytic");
+    assert_eq!(run["scenes"], 2);
+    assert_eq!(run["steps"], 6);
+    assert_eq!(run["preset"], "small");
+    assert!(run["init"].is_null());
+    assert_eq!(run["losses"]["l2"], 1.0);
+    assert_eq!(
+        described["identity"],
+        colf::model::Colf::load(&first).unwrap().identity().unwrap()
+    );
+
+    // A mask loss needs masks: on the unlabelled copy it is refused in one line.
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("--data")
+        .arg(&unlabelled)
+        .arg("--out")
+        .arg(dir.path().join("refused.safetensors"))
+        .args(["--steps", "2", "--mask-weight", "0.1"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.lines().count() == 1 && err.contains("mask"), "{err}");
+
+    // Fine-tuned from it with a mask loss on the labelled data: its records are the first
+    // model's, then its own, which starts from the first model and used masks.
+    let second = dir.path().join("second.safetensors");
+    train(
+        &data,
+        &second,
+        3,
+        &["--init", first.to_str().unwrap(), "--mask-weight", "0.1"],
+    );
+    let described = info(&second);
+    let runs = described["training"].as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    assert_eq!(runs[0], info(&first)["training"][0]);
+    assert_eq!(runs[1]["init"], info(&first)["identity"]);
+    assert_eq!(runs[1]["masks_used"], true);
+    assert_eq!(runs[1]["losses"]["mask"], 0.1);
+    assert_eq!(described["masks_used"], true);
+
+    // The bundled default model predates the records; a file that is not a model is one error.
+    let default = info(
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("models/default.safetensors")
+            .as_path(),
+    );
+    assert!(default["training"].is_null() && default["masks_used"].is_null());
+    let junk = dir.path().join("junk.safetensors");
+    std::fs::write(&junk, b"not a model").unwrap();
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("info")
+        .arg(&junk)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.lines().count() == 1 && err.contains("junk.safetensors"),
+        "{err}"
+    );
+    assert!(out.stdout.is_empty());
+}

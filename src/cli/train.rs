@@ -195,14 +195,45 @@ pub struct RunArgs {
 /// The subcommands of colf-train.
 #[derive(Subcommand, Debug)]
 pub enum TrainCommand {
-    /// Write a freshly initialised model.
+    // (Each subcommand's help is its Args struct's `about`/`long_about`: a doc comment here
+    // would replace them.)
     Init(InitArgs),
-    /// Draw loss and PSNR curves from a training log (OUT.log.jsonl) as a PNG.
     Plot(PlotArgs),
-    /// Average the weights of several models of one run (e.g. kept snapshots) into one.
     Average(AverageArgs),
-    /// Change settings of a model's config that keep its weights (e.g. its default encoding).
     Configure(ConfigureArgs),
+    Info(InfoArgs),
+}
+
+/// `colf-train info`.
+#[derive(Args, Debug)]
+#[command(
+    about = "Print a model's identity, size, config and how it was trained, as JSON",
+    long_about = "Read MODEL (`-`: stdin) and print one JSON object on stdout: `file`, `identity`, \
+`parameters`, `config` (as stored, with the default encoding under `inference`), `training` and \
+`masks_used`. `training` lists the model's training runs, oldest first (a curriculum's stages, \
+or the runs of the model it was fine-tuned from, then its own): the data folder and its renderer, \
+the scenes, whether the data had masks (`masks_in_data`) and whether a loss or the ray sampling \
+used them (`masks_used`), the model it started from, the steps, the batch, the learning-rate \
+schedule and the loss weights. `masks_used` (top level) is true if any run used masks, false if \
+none did, and null, as is `training`, for a model whose file does not record its training (files \
+written before colf-train recorded it, such as the bundled default model, which was trained with \
+masks: docs/training.md).",
+    after_help = "Examples:\n  colf-train info model.safetensors\n  colf-train info model.safetensors | jq '.training[] | {data, steps, masks_used}'"
+)]
+pub struct InfoArgs {
+    /// The model file (`-`: stdin).
+    #[arg(value_name = "MODEL")]
+    pub model: String,
+}
+
+/// Runs `colf-train info`.
+pub fn run_info(args: &InfoArgs) -> anyhow::Result<()> {
+    let name = crate::io::display_name(&args.model).to_string();
+    let bytes = crate::io::read_input(&args.model, true)?;
+    let model = crate::model::Colf::from_bytes(&bytes, &name)?;
+    let info = crate::model::history::describe(&model, &name)?;
+    let text = serde_json::to_string_pretty(&info)? + "\n";
+    crate::io::write_output("-", text.as_bytes(), false)
 }
 
 /// `colf-train configure`.

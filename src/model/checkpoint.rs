@@ -4,7 +4,9 @@
 //! - `config` = the [`Config`] as JSON;
 //! - `identity` = the first 16 hex digits of sha256 over the format, the config JSON and every
 //!   tensor (sorted by name: name, shape, little-endian f32 bytes). Codes files record it, and
-//!   `colf-render` refuses codes of another model.
+//!   `colf-render` refuses codes of another model;
+//! - `training` (optional) = how the model was trained, a JSON list of runs
+//!   ([`super::history`]); descriptive, so not part of the identity.
 //!
 //! Written deterministically (sorted keys, `crate::tensorfile`), so `colf-train init --seed S`
 //! is byte-reproducible. Reading validates the format, the config, that every value is finite
@@ -12,6 +14,7 @@
 //! model the config describes when the model is built (`Colf::from_bytes`).
 
 use super::config::Config;
+use super::history::{self, TrainingRun};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
 use anyhow::{anyhow, bail, Result};
 use candle_core::{Device, Tensor};
@@ -59,14 +62,20 @@ pub fn identity(config_json: &str, params: &HostParams) -> String {
     digest[..8].iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// Serialises a model; returns (bytes, identity).
-pub fn to_bytes(cfg: &Config, params: &HostParams) -> (Vec<u8>, String) {
+/// Serialises a model and its training records; returns (bytes, identity).
+pub fn to_bytes(cfg: &Config, params: &HostParams, training: &[TrainingRun]) -> (Vec<u8>, String) {
     let config_json = cfg.to_json();
     let id = identity(&config_json, params);
     let mut metadata = BTreeMap::new();
     metadata.insert("format".to_string(), FORMAT.to_string());
     metadata.insert("config".to_string(), config_json);
     metadata.insert("identity".to_string(), id.clone());
+    if !training.is_empty() {
+        metadata.insert(
+            history::METADATA_KEY.to_string(),
+            history::to_json(training),
+        );
+    }
     let tensors: Vec<F32Tensor> = params
         .iter()
         .map(|(name, (shape, data))| F32Tensor {
@@ -84,6 +93,8 @@ pub struct Checkpoint {
     pub config: Config,
     pub tensors: HashMap<String, Tensor>,
     pub identity: String,
+    /// How it was trained (empty when the file does not say).
+    pub training: Vec<TrainingRun>,
 }
 
 /// Parses and validates model-file bytes; `name` (the file) starts every error.
@@ -96,6 +107,10 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
     let config_json = file.require_metadata("config")?;
     let config = Config::from_json(config_json).map_err(|e| anyhow!("{name}: {e:#}"))?;
     let stored_id = file.require_metadata("identity")?.to_string();
+    let training = match file.metadata.get(history::METADATA_KEY) {
+        Some(json) => history::parse(json, name)?,
+        None => Vec::new(),
+    };
     let mut host = HostParams::new();
     for tensor in file.tensors.names() {
         let rank = file
@@ -119,5 +134,6 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
         config,
         tensors,
         identity: id,
+        training,
     })
 }

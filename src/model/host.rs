@@ -3,6 +3,7 @@
 //! hypernetworks run once per slot), render any number of world rays in bounded-memory chunks,
 //! and save or load the model file.
 
+use super::history::TrainingRun;
 use super::*;
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{DType, Device, Tensor, Var};
@@ -92,6 +93,8 @@ pub struct Colf {
     vars: Option<VarMap>,
     identity: String,
     device: Device,
+    /// How the model was trained (the file's `training` records; empty if unknown).
+    training: Vec<TrainingRun>,
 }
 
 /// Activation budget of one render chunk: S·rays·width floats ≤ this (8 MiB per tensor;
@@ -118,6 +121,7 @@ impl Colf {
             vars: None,
             identity,
             device,
+            training: Vec::new(),
         })
     }
 
@@ -125,7 +129,10 @@ impl Colf {
     pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Colf> {
         let ckpt = checkpoint::from_bytes(bytes, name)?;
         let tensors = ckpt.tensors.into_iter().collect();
-        Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)
+        Ok(
+            Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)?
+                .with_training(ckpt.training),
+        )
     }
 
     /// The same model under another config: one that gives every tensor the same name and
@@ -135,7 +142,7 @@ impl Colf {
     pub fn reconfigured(&self, cfg: &Config, seed: u64, name: &str) -> Result<Colf> {
         cfg.validate()?;
         let tensors = grow::grow_tensors(&self.model, &self.params, cfg, seed, name)?;
-        Colf::build(cfg.clone(), tensors, None, name)
+        Ok(Colf::build(cfg.clone(), tensors, None, name)?.with_training(self.training.clone()))
     }
 
     /// The same weights under a config changed by `overrides` (`KEY=VALUE`, as
@@ -144,9 +151,10 @@ impl Colf {
         let cfg = self.config().with_overrides(overrides)?;
         // `build` checks the tensors against the model the config describes: any missing,
         // unexpected or reshaped tensor is refused.
-        Colf::build(cfg, self.params.clone(), None, "the new config").context(
+        let configured = Colf::build(cfg, self.params.clone(), None, "the new config").context(
             "the settings change the model's tensors (grow the model and train it from this one instead)",
-        )
+        )?;
+        Ok(configured.with_training(self.training.clone()))
     }
 
     /// The same model with parameter `name` replaced by `value` (same shape), e.g. to set a
@@ -164,7 +172,19 @@ impl Colf {
         }
         let mut tensors = self.params.clone();
         tensors.insert(name.to_string(), value.to_dtype(DType::F32)?);
-        Colf::build(self.model.cfg.clone(), tensors, None, "model")
+        Ok(Colf::build(self.model.cfg.clone(), tensors, None, "model")?
+            .with_training(self.training.clone()))
+    }
+
+    /// How the model was trained, oldest run first (empty when its file did not say).
+    pub fn training(&self) -> &[TrainingRun] {
+        &self.training
+    }
+
+    /// The same model with these training records.
+    pub fn with_training(mut self, training: Vec<TrainingRun>) -> Colf {
+        self.training = training;
+        self
     }
 
     /// Builds the module tree of `cfg` on `tensors`, checking that the tensors are exactly the
@@ -205,6 +225,7 @@ impl Colf {
             vars: None,
             identity,
             device,
+            training: Vec::new(),
         })
     }
 
@@ -219,7 +240,7 @@ impl Colf {
     /// The file bytes (deterministic) and the identity they carry.
     pub fn to_bytes(&self) -> Result<(Vec<u8>, String)> {
         let host = checkpoint::to_host(&self.params)?;
-        Ok(checkpoint::to_bytes(&self.model.cfg, &host))
+        Ok(checkpoint::to_bytes(&self.model.cfg, &host, &self.training))
     }
 
     /// Writes the model file atomically (temporary file + rename in the target folder).
@@ -292,6 +313,7 @@ impl Colf {
             vars: Some(varmap),
             identity: self.identity,
             device: self.device,
+            training: self.training,
         })
     }
 

@@ -17,6 +17,7 @@ pub mod frames;
 pub mod fused;
 pub mod grow;
 pub mod heads;
+pub mod history;
 mod host;
 pub mod hypernet;
 pub mod init;
@@ -28,6 +29,7 @@ pub mod slot_attention;
 pub mod volumetric;
 
 pub use config::Config;
+pub use history::TrainingRun;
 pub use host::{Colf, Encoded, PreparedSlots, RayOutput};
 pub use light_field::SlotWeights;
 pub use net::{ColfNet, Decoded, Decoder, LightFieldDecoder};

@@ -39,7 +39,12 @@ pub fn average(models: &[(&str, &Colf)]) -> Result<(Vec<u8>, String)> {
             )
         })
         .collect();
-    Ok(checkpoint::to_bytes(first.config(), &mean))
+    // Models of one run share its records; the first model's are kept.
+    Ok(checkpoint::to_bytes(
+        first.config(),
+        &mean,
+        first.training(),
+    ))
 }
 
 /// Sums in f64, so the mean of many snapshots loses no precision.

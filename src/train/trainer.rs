@@ -8,6 +8,7 @@ use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
+use crate::model::history::{self, TrainingRun};
 use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
 use crate::optim::{Adam, AdamConfig};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
@@ -201,6 +202,10 @@ pub struct Trainer {
     pub step: u64,
     pub bad_steps: u64,
     num_slots: usize,
+    /// The training records of the model this run started from, and this run's own record
+    /// (its `steps` set when a model file is written).
+    earlier_runs: Vec<TrainingRun>,
+    this_run: TrainingRun,
 }
 
 /// What a step's forward pass computed.
@@ -236,13 +241,26 @@ impl Trainer {
     /// A new run, or (`resume`) the run saved in `opts.checkpoint_path()`.
     pub fn new(opts: TrainOptions, resume: bool) -> Result<Trainer> {
         opts.validate()?;
-        let (colf, adam_state, step, bad_steps) = if resume {
+        let data = load_scenes(&opts.data, opts.max_scenes)?;
+        let (colf, adam_state, step, bad_steps, earlier_runs, init_identity) = if resume {
             let path = opts.checkpoint_path();
             let bytes = std::fs::read(&path).with_context(|| {
                 format!("{}: cannot read the checkpoint to resume", path.display())
             })?;
             let (colf, step, bad) = load_checkpoint(&bytes, &path.display().to_string())?;
-            (colf, Some(bytes), step, bad)
+            // The checkpoint's records end with this run's; a checkpoint written before
+            // records existed has none, and the initial model (if still there) gives them.
+            let (earlier, init) = match colf.training().split_last() {
+                Some((this, earlier)) => (earlier.to_vec(), this.init.clone()),
+                None => match &opts.init {
+                    Some(p) if p.is_file() => {
+                        let init = Colf::load(p)?;
+                        (init.training().to_vec(), Some(init.identity()?))
+                    }
+                    _ => (Vec::new(), None),
+                },
+            };
+            (colf, Some(bytes), step, bad, earlier, init)
         } else {
             let colf = match &opts.init {
                 Some(p) => {
@@ -263,8 +281,20 @@ impl Trainer {
                     Colf::init(&cfg, opts.seed)?
                 }
             };
-            (colf, None, 0, 0)
+            let (earlier, init) = match &opts.init {
+                Some(_) => (colf.training().to_vec(), Some(colf.identity()?)),
+                None => (Vec::new(), None),
+            };
+            (colf, None, 0, 0, earlier, init)
         };
+        let this_run = run_record(&opts, &data, init_identity);
+        if this_run.masks_used && !this_run.masks_in_data {
+            bail!(
+                "{}: no training scene has a mask file, and the mask losses or the sampling of \
+                 rays on objects need them (train with no mask supervision on unlabelled data)",
+                opts.data.display()
+            );
+        }
         let colf = colf.into_trainable()?;
         let mut adam = Adam::new(colf.named_vars(), AdamConfig::default())?;
         if let Some(bytes) = adam_state {
@@ -272,7 +302,6 @@ impl Trainer {
             adam.load_state_tensors(&file, "adam/", step)?;
         }
         let num_slots = opts.slots.unwrap_or(colf.config().default_slots);
-        let data = load_scenes(&opts.data, opts.max_scenes)?;
         let eval_data = match &opts.eval_data {
             Some(p) if opts.eval_every > 0 => Some(Dataset::open(p)?),
             _ => None,
@@ -286,7 +315,19 @@ impl Trainer {
             step,
             bad_steps,
             num_slots,
+            earlier_runs,
+            this_run,
         })
+    }
+
+    /// The model's training records as of now: the initial model's, then this run's.
+    pub fn training_records(&self) -> Vec<TrainingRun> {
+        let mut runs = self.earlier_runs.clone();
+        runs.push(TrainingRun {
+            steps: self.step,
+            ..self.this_run.clone()
+        });
+        runs
     }
 
     pub fn model(&self) -> &Colf {
@@ -558,6 +599,10 @@ impl Trainer {
         meta.insert("step".into(), self.step.to_string());
         meta.insert("bad_steps".into(), self.bad_steps.to_string());
         meta.insert("options".into(), serde_json::to_string(&self.opts)?);
+        meta.insert(
+            history::METADATA_KEY.into(),
+            history::to_json(&self.training_records()),
+        );
         crate::io::write_atomic(
             &self.opts.checkpoint_path(),
             &serialize_f32(&tensors, &meta),
@@ -567,7 +612,8 @@ impl Trainer {
     /// The current weights as a model file's bytes, and as host tensors.
     fn model_file(&self) -> Result<(Vec<u8>, HostParams)> {
         let host = checkpoint::to_host(self.colf.parameters())?;
-        let (model_bytes, _) = checkpoint::to_bytes(self.colf.config(), &host);
+        let (model_bytes, _) =
+            checkpoint::to_bytes(self.colf.config(), &host, &self.training_records());
         Ok((model_bytes, host))
     }
 
@@ -642,9 +688,73 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
             host.insert(param.to_string(), file.f32_tensor(tensor, &expected)?);
         }
     }
-    let (model_bytes, _) = checkpoint::to_bytes(&config, &host);
+    let training = match file.metadata.get(history::METADATA_KEY) {
+        Some(json) => history::parse(json, name)?,
+        None => Vec::new(),
+    };
+    let (model_bytes, _) = checkpoint::to_bytes(&config, &host, &training);
     let colf = Colf::from_bytes(&model_bytes, name)?;
     Ok((colf, step, bad))
+}
+
+/// This run's training record (its `steps` are filled in as it goes): the data, whether masks
+/// were there and whether anything used them, the schedule and the loss weights.
+fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> TrainingRun {
+    let masks_used =
+        opts.mask_weight > 0.0 || opts.attention_mask_weight > 0.0 || opts.object_fraction > 0.0;
+    let losses = [
+        ("l2", 1.0),
+        ("l1", opts.l1_weight),
+        ("latent", opts.latent_weight),
+        ("mask", opts.mask_weight),
+        ("attention_mask", opts.attention_mask_weight),
+    ]
+    .into_iter()
+    .filter(|&(_, w)| w != 0.0)
+    .map(|(k, w)| (k.to_string(), w))
+    .collect();
+    TrainingRun {
+        data: opts.data.display().to_string(),
+        engine: dataset_engine(&opts.data),
+        scenes: data.len(),
+        masks_in_data: data
+            .iter()
+            .any(|s| s.views.iter().any(|v| v.mask.is_some())),
+        masks_used,
+        preset: init.is_none().then(|| opts.preset.clone()),
+        init,
+        config_overrides: opts.config_overrides.clone(),
+        steps: 0,
+        planned_steps: opts.steps,
+        batch: opts.batch_scenes,
+        views: opts.views_per_scene,
+        rays: opts.rays_per_view,
+        lr: opts.lr,
+        warmup: opts.warmup,
+        decay_from: opts.decay_from,
+        final_lr: opts.decay_from.map(|_| opts.final_lr),
+        losses,
+        object_fraction: opts.object_fraction,
+        mask_margin: opts.mask_margin,
+        mask_shadow_depth: opts.mask_shadow_depth,
+        seed: opts.seed,
+    }
+}
+
+/// The renderer named by a colf-synth folder's `dataset.json` (`analytic` when it names none);
+/// `None` for other folders.
+fn dataset_engine(root: &Path) -> Option<String> {
+    let text = std::fs::read_to_string(root.join("dataset.json")).ok()?;
+    let json: serde_json::Value = serde_json::from_str(&text).ok()?;
+    if json.get("format")?.as_str()? != "colf-synth/1" {
+        return None;
+    }
+    Some(
+        json.get("engine")
+            .and_then(|e| e.as_str())
+            .unwrap_or("analytic")
+            .to_string(),
+    )
 }
 
 /// Mask supervision targets: per scene, objects are matched to foreground slots by the
