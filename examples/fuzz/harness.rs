@@ -89,6 +89,17 @@ pub struct Fuzzer {
     log: Vec<u8>,
 }
 
+/// The `training` metadata of the fuzzed model: two runs, as `colf-train` writes them.
+const FUZZ_TRAINING_RUNS: &str = r#"[{"batch":4,"config_overrides":[],"data":"data/train",
+"decay_from":null,"engine":"analytic","final_lr":null,"init":null,"losses":{"l2":1.0,"latent":0.0001},
+"lr":0.0002,"mask_margin":0,"mask_shadow_depth":0.0,"masks_in_data":true,"masks_used":false,
+"object_fraction":0.0,"planned_steps":100,"preset":"small","rays":512,"scenes":400,"seed":0,
+"steps":100,"views":2,"warmup":500},{"batch":4,"config_overrides":["ray_fourier_freqs=6"],
+"data":"bl/train","decay_from":60,"engine":"blender","final_lr":5e-6,"init":"c1fd4506bf2ce4e6",
+"losses":{"l2":1.0,"mask":0.1},"lr":5e-5,"mask_margin":1,"mask_shadow_depth":0.1,
+"masks_in_data":true,"masks_used":true,"object_fraction":0.2,"planned_steps":80,"preset":null,
+"rays":256,"scenes":320,"seed":31,"steps":80,"views":4,"warmup":200}]"#;
+
 /// The smallest model the tests build (tests/model_core.rs `tiny`).
 pub fn tiny_config() -> Config {
     Config {
@@ -136,7 +147,12 @@ pub fn small_codes() -> Codes {
 impl Fuzzer {
     pub fn new() -> anyhow::Result<Fuzzer> {
         let codes = small_codes().to_bytes()?;
-        let model = Colf::init(&tiny_config(), 7)?.to_bytes()?.0;
+        // With a training record, so the mutations reach the `training` metadata reader too.
+        let training = colf::model::history::parse(FUZZ_TRAINING_RUNS, "fuzz")?;
+        let model = Colf::init(&tiny_config(), 7)?
+            .with_training(training)
+            .to_bytes()?
+            .0;
         let transforms = br#"{"camera_angle_x": 0.6911, "w": 64, "h": 64,
  "frames": [
   {"file_path": "view_000.png", "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]},
