@@ -72,7 +72,8 @@ pub struct EncodeArgs {
     #[command(flatten)]
     pub fit: crate::cli::FitArgs,
 
-    /// Model file (default: $COLF_MODEL, else the bundled default model).
+    /// Model file, or a bundled model's name (`default`, `blender`); default: $COLF_MODEL, else
+    /// the bundled default model.
     #[arg(long, value_name = "M")]
     pub model: Option<String>,
 

@@ -249,12 +249,13 @@ impl Trainer {
             })?;
             let (colf, step, bad) = load_checkpoint(&bytes, &path.display().to_string())?;
             // The checkpoint's records end with this run's; a checkpoint written before
-            // records existed has none, and the initial model (if still there) gives them.
+            // records existed has none, and the initial model its options name (if still
+            // there) gives them.
             let (earlier, init) = match colf.training().split_last() {
                 Some((this, earlier)) => (earlier.to_vec(), this.init.clone()),
-                None => match &opts.init {
+                None => match checkpoint_init_path(&bytes) {
                     Some(p) if p.is_file() => {
-                        let init = Colf::load(p)?;
+                        let init = Colf::load(&p)?;
                         (init.training().to_vec(), Some(init.identity()?))
                     }
                     _ => (Vec::new(), None),
@@ -695,6 +696,13 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
     let (model_bytes, _) = checkpoint::to_bytes(&config, &host, &training);
     let colf = Colf::from_bytes(&model_bytes, name)?;
     Ok((colf, step, bad))
+}
+
+/// The initial model (`--init`) of the run a checkpoint holds, from the options it stored.
+fn checkpoint_init_path(bytes: &[u8]) -> Option<PathBuf> {
+    let file = TensorFile::parse(bytes, "checkpoint").ok()?;
+    let options: serde_json::Value = serde_json::from_str(file.metadata.get("options")?).ok()?;
+    Some(PathBuf::from(options.get("init")?.as_str()?))
 }
 
 /// This run's training record (its `steps` are filled in as it goes): the data, whether masks
