@@ -438,6 +438,54 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
     assert_eq!(runs[1]["losses"]["mask"], 0.1);
     assert_eq!(described["masks_used"], true);
 
+    // --freeze keeps the named parameters as they were and is recorded; a prefix that names
+    // no parameter is refused.
+    let frozen = dir.path().join("frozen.safetensors");
+    train(
+        &unlabelled,
+        &frozen,
+        3,
+        &["--init", first.to_str().unwrap(), "--freeze", "encoder."],
+    );
+    let (before, after) = (
+        colf::model::Colf::load(&first).unwrap(),
+        colf::model::Colf::load(&frozen).unwrap(),
+    );
+    let values = |m: &colf::model::Colf, name: &str| {
+        m.parameters()[name]
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f32>()
+            .unwrap()
+    };
+    let (mut kept, mut moved) = (0, 0);
+    for name in before.parameters().keys() {
+        let same = values(&before, name) == values(&after, name);
+        if name.starts_with("encoder.") {
+            assert!(same, "{name} changed although frozen");
+            kept += 1;
+        } else if !same {
+            moved += 1;
+        }
+    }
+    assert!(kept > 0 && moved > 0, "kept {kept}, moved {moved}");
+    assert_eq!(info(&frozen)["training"][1]["frozen"][0], "encoder.");
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("--data")
+        .arg(&unlabelled)
+        .arg("--out")
+        .arg(dir.path().join("refused.safetensors"))
+        .args(["--steps", "2", "--freeze", "enc0der."])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.lines().count() == 1 && err.contains("`enc0der.`"),
+        "{err}"
+    );
+
     // The bundled default model predates the records; a file that is not a model is one error.
     let default = info(
         Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -183,6 +183,12 @@ pub struct RunArgs {
     #[arg(long, value_name = "N")]
     pub max_scenes: Option<usize>,
 
+    /// Keep the parameters whose names start with PREFIX fixed (repeatable; tensor names as in
+    /// docs/model.md): e.g. `--freeze encoder. --freeze slot_attention.` adapts the decoder to a
+    /// new look and keeps how the slots group pixels.
+    #[arg(long, value_name = "PREFIX")]
+    pub freeze: Vec<String>,
+
     /// Abort after this many steps with a non-finite loss or gradient.
     #[arg(long, default_value_t = 50, value_name = "N")]
     pub max_bad_steps: u64,
@@ -410,6 +416,7 @@ impl RunArgs {
             eval_scenes: args.eval_scenes,
             max_bad_steps: args.max_bad_steps,
             max_scenes: args.max_scenes,
+            freeze: args.freeze.clone(),
         })
     }
 }

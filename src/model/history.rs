@@ -42,6 +42,9 @@ pub struct TrainingRun {
     /// Config overrides (`--set`) the run applied.
     #[serde(default)]
     pub config_overrides: Vec<String>,
+    /// Prefixes of the parameters the run kept fixed (`--freeze`).
+    #[serde(default)]
+    pub frozen: Vec<String>,
     /// Optimisation steps the model file has had from this run: the run started at step 0.
     pub steps: u64,
     /// The run's planned total (`--steps`).
@@ -130,6 +133,7 @@ mod tests {
             init: Some("c1fd4506bf2ce4e6".into()),
             preset: None,
             config_overrides: vec![],
+            frozen: vec!["encoder.".into()],
             steps: 10,
             planned_steps: 20,
             batch: 4,
@@ -171,9 +175,12 @@ mod tests {
                 "{bad}: {e}"
             );
         }
-        let mut inf = serde_json::to_value(vec![run()]).unwrap();
-        inf[0]["lr"] = serde_json::json!(1e308);
-        let text = inf.to_string().replace("1e308", "1e999");
-        assert!(parse(&text, "m").is_err());
+        // A number past f64 (read as infinity, or refused by the JSON reader) is an error.
+        let mut record = serde_json::to_value(vec![run()]).unwrap();
+        record[0]["lr"] = serde_json::json!("LR");
+        let text = record.to_string().replace("\"LR\"", "1e999");
+        assert!(text.contains("\"lr\":1e999"), "{text}");
+        let e = parse(&text, "m").unwrap_err().to_string();
+        assert!(e.starts_with("m: training"), "{e}");
     }
 }

@@ -106,6 +106,10 @@ pub struct TrainOptions {
     pub max_bad_steps: u64,
     /// Use only the first N training scenes (overfitting tests).
     pub max_scenes: Option<usize>,
+    /// Parameters whose names start with one of these are not updated (e.g. `encoder.` and
+    /// `slot_attention.`, to adapt the decoder to a new look while keeping how slots group).
+    #[serde(default)]
+    pub freeze: Vec<String>,
 }
 
 impl TrainOptions {
@@ -297,7 +301,17 @@ impl Trainer {
             );
         }
         let colf = colf.into_trainable()?;
-        let mut adam = Adam::new(colf.named_vars(), AdamConfig::default())?;
+        for prefix in &opts.freeze {
+            if !colf.named_vars().iter().any(|(n, _)| n.starts_with(prefix)) {
+                bail!("no parameter of the model has a name starting with `{prefix}` (to freeze)");
+            }
+        }
+        let trained: Vec<_> = colf
+            .named_vars()
+            .into_iter()
+            .filter(|(n, _)| !opts.freeze.iter().any(|p| n.starts_with(p)))
+            .collect();
+        let mut adam = Adam::new(trained, AdamConfig::default())?;
         if let Some(bytes) = adam_state {
             let file = TensorFile::parse(&bytes, "checkpoint")?;
             adam.load_state_tensors(&file, "adam/", step)?;
@@ -732,6 +746,7 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         preset: init.is_none().then(|| opts.preset.clone()),
         init,
         config_overrides: opts.config_overrides.clone(),
+        frozen: opts.freeze.clone(),
         steps: 0,
         planned_steps: opts.steps,
         batch: opts.batch_scenes,
