@@ -98,8 +98,10 @@ mod tests {
 
     #[test]
     fn bare_names_find_bundled_models_and_paths_stay_paths() {
-        let default = resolve_model_path(Some("default")).unwrap();
-        assert!(default.ends_with("default.safetensors") && default.is_file());
+        for name in ["default", "blender"] {
+            let found = resolve_model_path(Some(name)).unwrap();
+            assert!(found.ends_with(format!("{name}.safetensors")) && found.is_file());
+        }
         // A path (or a name with a dot or slash) is taken as given, existing or not.
         for given in ["/x/m.safetensors", "m.safetensors", "models/x"] {
             assert_eq!(

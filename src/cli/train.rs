@@ -52,9 +52,11 @@ pub struct RunArgs {
     #[arg(long, value_name = "MODEL", required = true)]
     pub out: Option<std::path::PathBuf>,
 
-    /// Start from this model (curriculum: e.g. clevr567, then harder scenes).
+    /// Start from this model, a file or a bundled model's name (`default`, `blender`): a
+    /// curriculum (e.g. clevr567, then harder scenes), or a model that already separates
+    /// objects fine-tuned on your own scenes.
     #[arg(long, value_name = "MODEL", conflicts_with = "resume")]
-    pub init: Option<std::path::PathBuf>,
+    pub init: Option<String>,
 
     /// Continue the run saved in OUT.ckpt (model, optimizer moments and step) up to --steps.
     #[arg(long)]
@@ -388,7 +390,11 @@ impl RunArgs {
         Ok(TrainOptions {
             data,
             out,
-            init: args.init.clone(),
+            init: args
+                .init
+                .as_deref()
+                .map(|m| crate::cli::model_path::resolve_model_path(Some(m)))
+                .transpose()?,
             preset: args.preset.clone(),
             steps: args.steps,
             batch_scenes: args.batch,
