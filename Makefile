@@ -79,47 +79,36 @@ man:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
 #   row 3: the same novel views after the edit;  row 4: their masks
+# $(call demo_steps,DIR,SYNTH_FLAGS,MODEL_FLAGS,EDITS): the demo's steps in DIR.
+define demo_steps
+	@mkdir -p $(1)
+	$(RELEASE)/colf-synth $(2) --out $(1)/data --scenes 1 --seed 7 --split test -q --force
+	$(RELEASE)/colf-encode $(1)/data/scene_00000/view_000.png $(3) \
+	  --camera $(1)/data/scene_00000/transforms.json --prune 0.001 -o $(1)/scene.codes
+	$(RELEASE)/colf-edit --inspect $(1)/scene.codes > $(1)/slots.json
+	$(RELEASE)/colf-edit $(4) $(1)/scene.codes -o $(1)/edited.codes
+	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(1)/orbit.json
+	$(RELEASE)/colf-render $(1)/scene.codes $(3) --cameras $(1)/orbit.json --out $(1)/orbit --masks -q
+	$(RELEASE)/colf-render $(1)/edited.codes $(3) --cameras $(1)/orbit.json --out $(1)/edited --masks -q
+	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(1)/sheet.png \
+	  $(1)/data/scene_00000/view_000.png $(1)/orbit/frame_000{0,1,2,3}.png \
+	  $(1)/data/scene_00000/view_000.mask.png $(1)/orbit/frame_000{0,1,2,3}.mask.png \
+	  - $(1)/edited/frame_000{0,1,2,3}.png \
+	  - $(1)/edited/frame_000{0,1,2,3}.mask.png
+	@echo "demo: slots in $(1)/slots.json, renders in $(1)/orbit and $(1)/edited,"
+	@echo "      contact sheet $(1)/sheet.png"
+endef
+
 demo: build
-	@mkdir -p $(DEMO)
-	$(RELEASE)/colf-synth --out $(DEMO)/data --scenes 1 --seed 7 --split test -q --force
-	$(RELEASE)/colf-encode $(DEMO)/data/scene_00000/view_000.png \
-	  --camera $(DEMO)/data/scene_00000/transforms.json --prune 0.001 -o $(DEMO)/scene.codes
-	$(RELEASE)/colf-edit --inspect $(DEMO)/scene.codes > $(DEMO)/slots.json
-	$(RELEASE)/colf-edit examples/demo-edits.json $(DEMO)/scene.codes -o $(DEMO)/edited.codes
-	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO)/orbit.json
-	$(RELEASE)/colf-render $(DEMO)/scene.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/orbit --masks -q
-	$(RELEASE)/colf-render $(DEMO)/edited.codes --cameras $(DEMO)/orbit.json --out $(DEMO)/edited --masks -q
-	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(DEMO)/sheet.png \
-	  $(DEMO)/data/scene_00000/view_000.png $(DEMO)/orbit/frame_000{0,1,2,3}.png \
-	  $(DEMO)/data/scene_00000/view_000.mask.png $(DEMO)/orbit/frame_000{0,1,2,3}.mask.png \
-	  - $(DEMO)/edited/frame_000{0,1,2,3}.png \
-	  - $(DEMO)/edited/frame_000{0,1,2,3}.mask.png
-	@echo "demo: slots in $(DEMO)/slots.json, renders in $(DEMO)/orbit and $(DEMO)/edited,"
-	@echo "      contact sheet $(DEMO)/sheet.png"
+	$(call demo_steps,$(DEMO),,,examples/demo-edits.json)
 
 # The same demo on the same scene rendered by Blender (Cycles; apt-get install blender), encoded,
 # edited and rendered with the bundled `blender` model (the default model adapted to Blender's
 # look without labels: make model-blender). The edit moves the blue cylinder (slot 2 of this
 # encoding) and deletes the large cyan one (slots 1 and 5: the encoding gave it a second slot,
 # hidden behind it in the input view). The sheet is docs/blender-sheet.png.
-DEMO_BLENDER := out/demo-blender
 demo-blender: build
-	@mkdir -p $(DEMO_BLENDER)
-	$(RELEASE)/colf-synth --engine blender --out $(DEMO_BLENDER)/data --scenes 1 --seed 7 --split test -q --force
-	$(RELEASE)/colf-encode $(DEMO_BLENDER)/data/scene_00000/view_000.png --model blender \
-	  --camera $(DEMO_BLENDER)/data/scene_00000/transforms.json --prune 0.001 -o $(DEMO_BLENDER)/scene.codes
-	$(RELEASE)/colf-edit examples/demo-blender-edits.json $(DEMO_BLENDER)/scene.codes -o $(DEMO_BLENDER)/edited.codes
-	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(DEMO_BLENDER)/orbit.json
-	$(RELEASE)/colf-render $(DEMO_BLENDER)/scene.codes --model blender --cameras $(DEMO_BLENDER)/orbit.json \
-	  --out $(DEMO_BLENDER)/orbit --masks -q
-	$(RELEASE)/colf-render $(DEMO_BLENDER)/edited.codes --model blender --cameras $(DEMO_BLENDER)/orbit.json \
-	  --out $(DEMO_BLENDER)/edited --masks -q
-	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(DEMO_BLENDER)/sheet.png \
-	  $(DEMO_BLENDER)/data/scene_00000/view_000.png $(DEMO_BLENDER)/orbit/frame_000{0,1,2,3}.png \
-	  $(DEMO_BLENDER)/data/scene_00000/view_000.mask.png $(DEMO_BLENDER)/orbit/frame_000{0,1,2,3}.mask.png \
-	  - $(DEMO_BLENDER)/edited/frame_000{0,1,2,3}.png \
-	  - $(DEMO_BLENDER)/edited/frame_000{0,1,2,3}.mask.png
-	@echo "demo-blender: contact sheet $(DEMO_BLENDER)/sheet.png"
+	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
 
 # The default model's recipe (README, "The default model"): clevr567 scenes at 64², 100 held
 # out; a model with slot frames at the attention centroids, a locality bound, 6 Fourier

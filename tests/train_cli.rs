@@ -4,6 +4,8 @@
 use assert_cmd::Command;
 use std::path::Path;
 
+mod common;
+
 fn data(dir: &Path) -> std::path::PathBuf {
     let out = dir.join("data");
     Command::cargo_bin("colf-synth")
@@ -86,53 +88,14 @@ fn a_resumed_run_matches_an_uninterrupted_one() {
     assert!(colf::model::Colf::load(&mean).is_ok());
     let junk = dir.path().join("junk.safetensors");
     std::fs::write(&junk, b"not a model").unwrap();
-    let bad = dir.path().join("bad.safetensors");
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("average")
-        .args([kept(6), junk])
-        .arg("-o")
-        .arg(&bad)
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.starts_with("colf-train: error: ")
-            && err.contains("junk.safetensors")
-            && err.lines().count() == 1,
-        "{err}"
-    );
-    assert!(!bad.exists());
-    let split = dir.path().join("b.safetensors");
-    train(&data, &split, 7, &[]);
-    train(&data, &split, 12, &["--resume"]);
-    assert_eq!(
-        std::fs::read(&straight).unwrap(),
-        std::fs::read(&split).unwrap(),
-        "resumed weights differ from an uninterrupted run"
-    );
-    let steps: Vec<u64> = log_losses(&split).iter().map(|x| x.0).collect();
-    assert_eq!(
-        steps,
-        (0..12).collect::<Vec<_>>(),
-        "steps repeated or skipped"
-    );
-    // Resuming needs a checkpoint.
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("--data")
-        .arg(&data)
-        .arg("--out")
-        .arg(dir.path().join("none.safetensors"))
-        .arg("--resume")
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.starts_with("colf-train: error: ") && err.contains("none.safetensors.ckpt"),
-        "{err}"
+    common::fails_with(
+        Command::cargo_bin("colf-train")
+            .unwrap()
+            .arg("info")
+            .arg(&junk),
+        "train",
+        1,
+        "junk.safetensors",
     );
 }
 
@@ -349,6 +312,26 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
     assert!(!wider.exists());
 }
 
+/// A training run on `data` with `extra` flags, refused in one line mentioning `needle`; no
+/// model is written.
+fn refused(data: &Path, dir: &Path, extra: &[&str], needle: &str) {
+    let out = dir.join("refused.safetensors");
+    common::fails_with(
+        Command::cargo_bin("colf-train")
+            .unwrap()
+            .arg("--data")
+            .arg(data)
+            .arg("--out")
+            .arg(&out)
+            .args(["--steps", "2"])
+            .args(extra),
+        "train",
+        1,
+        needle,
+    );
+    assert!(!out.exists());
+}
+
 /// `colf-train info` of a model file, parsed.
 fn info(model: &Path) -> serde_json::Value {
     let out = Command::cargo_bin("colf-train")
@@ -407,18 +390,7 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
     );
 
     // A mask loss needs masks: on the unlabelled copy it is refused in one line.
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("--data")
-        .arg(&unlabelled)
-        .arg("--out")
-        .arg(dir.path().join("refused.safetensors"))
-        .args(["--steps", "2", "--mask-weight", "0.1"])
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.lines().count() == 1 && err.contains("mask"), "{err}");
+    refused(&unlabelled, dir.path(), &["--mask-weight", "0.1"], "mask");
 
     // Fine-tuned from it with a mask loss on the labelled data: its records are the first
     // model's, then its own, which starts from the first model and used masks.
@@ -470,20 +442,11 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
     }
     assert!(kept > 0 && moved > 0, "kept {kept}, moved {moved}");
     assert_eq!(info(&frozen)["training"][1]["frozen"][0], "encoder.");
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("--data")
-        .arg(&unlabelled)
-        .arg("--out")
-        .arg(dir.path().join("refused.safetensors"))
-        .args(["--steps", "2", "--freeze", "enc0der."])
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        err.lines().count() == 1 && err.contains("`enc0der.`"),
-        "{err}"
+    refused(
+        &unlabelled,
+        dir.path(),
+        &["--freeze", "enc0der."],
+        "`enc0der.`",
     );
 
     // The bundled default model predates the records; a file that is not a model is one error.
