@@ -134,6 +134,14 @@ STAGE12_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train --eval-every 100
   --lr 3e-4 --object-fraction 0.2
 STAGE34_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train2k --eval-every 2000 \
   --eval-scenes 16 --attention-mask-weight 0.1
+# $(call eval_model,RUN,MODEL): MODEL scored on RUN/data/test with its default encoding
+# (RUN/eval.json) and in one pass (RUN/eval-fast.json), each written only when complete.
+define eval_model
+	$(RELEASE)/colf-eval --data $(1)/data/test --model $(2) > $(1)/eval.json.tmp \
+	  && mv $(1)/eval.json.tmp $(1)/eval.json
+	$(RELEASE)/colf-eval --data $(1)/data/test --model $(2) --fast > $(1)/eval-fast.json.tmp \
+	  && mv $(1)/eval-fast.json.tmp $(1)/eval-fast.json
+endef
 # $(call resume_or_init,OUT,INIT): continue OUT's checkpoint if there is one, else start from INIT.
 resume_or_init = $(if $(wildcard $(1).ckpt),--resume,--init $(2))
 model: build
@@ -174,11 +182,7 @@ model: build
 	$(RELEASE)/colf-train plot $(MODEL_RUN)/stage6.safetensors.log.jsonl -o $(MODEL_RUN)/training.png
 	$(RELEASE)/colf-train configure $(MODEL_RUN)/stage6.safetensors \
 	  --set 'inference={"slots":12,"tries":4,"refine":50}' -o $(MODEL_RUN)/model.safetensors
-	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
-	  > $(MODEL_RUN)/eval.json.tmp && mv $(MODEL_RUN)/eval.json.tmp $(MODEL_RUN)/eval.json
-	$(RELEASE)/colf-eval --data $(MODEL_RUN)/data/test --model $(MODEL_RUN)/model.safetensors \
-	  --fast > $(MODEL_RUN)/eval-fast.json.tmp \
-	  && mv $(MODEL_RUN)/eval-fast.json.tmp $(MODEL_RUN)/eval-fast.json
+	$(call eval_model,$(MODEL_RUN),$(MODEL_RUN)/model.safetensors)
 	cp $(MODEL_RUN)/model.safetensors models/default.safetensors
 
 # Adaptation to a new look without labels (README, "Train on your own scenes"; docs/training.md,
@@ -206,11 +210,7 @@ model-blender: build
 	  --checkpoint-every 250 --keep-every 500 \
 	  $(call resume_or_init,$(ADAPT_RUN)/blender.safetensors,models/default.safetensors)
 	$(RELEASE)/colf-train plot $(ADAPT_RUN)/blender.safetensors.log.jsonl -o $(ADAPT_RUN)/training.png
-	$(RELEASE)/colf-eval --data $(ADAPT_RUN)/data/test --model $(ADAPT_RUN)/blender.safetensors \
-	  > $(ADAPT_RUN)/eval.json.tmp && mv $(ADAPT_RUN)/eval.json.tmp $(ADAPT_RUN)/eval.json
-	$(RELEASE)/colf-eval --data $(ADAPT_RUN)/data/test --model $(ADAPT_RUN)/blender.safetensors \
-	  --fast > $(ADAPT_RUN)/eval-fast.json.tmp \
-	  && mv $(ADAPT_RUN)/eval-fast.json.tmp $(ADAPT_RUN)/eval-fast.json
+	$(call eval_model,$(ADAPT_RUN),$(ADAPT_RUN)/blender.safetensors)
 	cp $(ADAPT_RUN)/blender.safetensors models/blender.safetensors
 
 install: build

@@ -50,10 +50,13 @@ pub fn default_model_path() -> Result<PathBuf> {
     if let Some(p) = std::env::var_os("COLF_MODEL").filter(|p| !p.is_empty()) {
         return Ok(PathBuf::from(p));
     }
-    first_file(
-        &default_model_candidates(),
-        "no model given and no default model found (set COLF_MODEL or pass --model",
-    )
+    let candidates = default_model_candidates();
+    first_file(&candidates).ok_or_else(|| {
+        anyhow!(
+            "no model given and no default model found (set COLF_MODEL or pass --model; looked in {})",
+            listed(&candidates)
+        )
+    })
 }
 
 /// `explicit` (a `--model` argument) if given, else [`default_model_path`]. An argument that is
@@ -67,24 +70,24 @@ pub fn resolve_model_path(explicit: Option<&str>) -> Result<PathBuf> {
     if path.exists() || !is_model_name(given) {
         return Ok(path);
     }
-    first_file(
-        &bundled_model_candidates(&format!("{given}.safetensors")),
-        &format!("{given}: no such model file, and no bundled model of that name ("),
-    )
+    let candidates = bundled_model_candidates(&format!("{given}.safetensors"));
+    first_file(&candidates).ok_or_else(|| {
+        anyhow!(
+            "{given}: no such model file, and no bundled model of that name (looked in {})",
+            listed(&candidates)
+        )
+    })
 }
 
-/// The first of `candidates` that is a file; else an error: `problem`, then the places looked
-/// in and a closing parenthesis.
-fn first_file(candidates: &[PathBuf], problem: &str) -> Result<PathBuf> {
-    candidates
-        .iter()
-        .find(|p| p.is_file())
-        .cloned()
-        .ok_or_else(|| {
-            let list: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
-            let sep = if problem.ends_with('(') { "" } else { "; " };
-            anyhow!("{problem}{sep}looked in {})", list.join(", "))
-        })
+/// The first of `candidates` that is a file.
+fn first_file(candidates: &[PathBuf]) -> Option<PathBuf> {
+    candidates.iter().find(|p| p.is_file()).cloned()
+}
+
+/// `candidates` for an error message, comma-separated.
+fn listed(candidates: &[PathBuf]) -> String {
+    let list: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
+    list.join(", ")
 }
 
 /// Loads the model `explicit` (a `--model` argument) names, else the default one.

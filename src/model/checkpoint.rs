@@ -107,10 +107,7 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
     let config_json = file.require_metadata("config")?;
     let config = Config::from_json(config_json).map_err(|e| anyhow!("{name}: {e:#}"))?;
     let stored_id = file.require_metadata("identity")?.to_string();
-    let training = match file.metadata.get(history::METADATA_KEY) {
-        Some(json) => history::parse(json, name)?,
-        None => Vec::new(),
-    };
+    let training = history::from_metadata(&file.metadata, name)?;
     let mut host = HostParams::new();
     for tensor in file.tensors.names() {
         let rank = file

@@ -251,13 +251,14 @@ impl Trainer {
             let bytes = std::fs::read(&path).with_context(|| {
                 format!("{}: cannot read the checkpoint to resume", path.display())
             })?;
-            let (colf, step, bad) = load_checkpoint(&bytes, &path.display().to_string())?;
+            let saved = load_checkpoint(&bytes, &path.display().to_string())?;
+            let (colf, step, bad) = (saved.colf, saved.step, saved.bad_steps);
             // The checkpoint's records end with this run's; a checkpoint written before
             // records existed has none, and the initial model its options name (if still
             // there) gives them.
             let (earlier, init) = match colf.training().split_last() {
                 Some((this, earlier)) => (earlier.to_vec(), this.init.clone()),
-                None => match checkpoint_init_path(&bytes) {
+                None => match saved.init_path {
                     Some(p) if p.is_file() => {
                         let init = Colf::load(&p)?;
                         (init.training().to_vec(), Some(init.identity()?))
@@ -301,15 +302,17 @@ impl Trainer {
             );
         }
         let colf = colf.into_trainable()?;
-        for prefix in &opts.freeze {
-            if !colf.named_vars().iter().any(|(n, _)| n.starts_with(prefix)) {
-                bail!("no parameter of the model has a name starting with `{prefix}` (to freeze)");
-            }
+        let vars = colf.named_vars();
+        if let Some(prefix) = opts
+            .freeze
+            .iter()
+            .find(|p| !vars.iter().any(|(n, _)| n.starts_with(p.as_str())))
+        {
+            bail!("no parameter of the model has a name starting with `{prefix}` (to freeze)");
         }
-        let trained: Vec<_> = colf
-            .named_vars()
+        let trained: Vec<_> = vars
             .into_iter()
-            .filter(|(n, _)| !opts.freeze.iter().any(|p| n.starts_with(p)))
+            .filter(|(n, _)| !opts.freeze.iter().any(|p| n.starts_with(p.as_str())))
             .collect();
         let mut adam = Adam::new(trained, AdamConfig::default())?;
         if let Some(bytes) = adam_state {
@@ -681,8 +684,18 @@ impl Trainer {
     }
 }
 
-/// Reads a training checkpoint: the model, the step and the count of bad steps.
-fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
+/// A training checkpoint as read back.
+struct SavedRun {
+    colf: Colf,
+    step: u64,
+    bad_steps: u64,
+    /// The initial model (`--init`) named by the options the run stored.
+    init_path: Option<PathBuf>,
+}
+
+/// Reads a training checkpoint: the model (with its training records), the step, the count of
+/// bad steps and the run's initial model.
+fn load_checkpoint(bytes: &[u8], name: &str) -> Result<SavedRun> {
     let file = TensorFile::parse(bytes, name)?;
     if file.require_metadata("format")? != CHECKPOINT_FORMAT {
         bail!("{name}: not a colf training checkpoint");
@@ -703,20 +716,19 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<(Colf, u64, u64)> {
             host.insert(param.to_string(), file.f32_tensor(tensor, &expected)?);
         }
     }
-    let training = match file.metadata.get(history::METADATA_KEY) {
-        Some(json) => history::parse(json, name)?,
-        None => Vec::new(),
-    };
+    let training = history::from_metadata(&file.metadata, name)?;
     let (model_bytes, _) = checkpoint::to_bytes(&config, &host, &training);
-    let colf = Colf::from_bytes(&model_bytes, name)?;
-    Ok((colf, step, bad))
-}
-
-/// The initial model (`--init`) of the run a checkpoint holds, from the options it stored.
-fn checkpoint_init_path(bytes: &[u8]) -> Option<PathBuf> {
-    let file = TensorFile::parse(bytes, "checkpoint").ok()?;
-    let options: serde_json::Value = serde_json::from_str(file.metadata.get("options")?).ok()?;
-    Some(PathBuf::from(options.get("init")?.as_str()?))
+    let init_path = file
+        .metadata
+        .get("options")
+        .and_then(|o| serde_json::from_str::<serde_json::Value>(o).ok())
+        .and_then(|o| Some(PathBuf::from(o.get("init")?.as_str()?)));
+    Ok(SavedRun {
+        colf: Colf::from_bytes(&model_bytes, name)?,
+        step,
+        bad_steps: bad,
+        init_path,
+    })
 }
 
 /// This run's training record (its `steps` are filled in as it goes): the data, whether masks
