@@ -1,6 +1,6 @@
 use clap::Parser;
 use colf::cli::train::{
-    run_average, run_configure, run_info, run_training, TrainArgs, TrainCommand,
+    run_average, run_configure, run_info, run_propose, run_training, TrainArgs, TrainCommand,
 };
 
 fn main() {
@@ -22,6 +22,7 @@ fn main() {
         Some(TrainCommand::Average(average)) => run_average(average),
         Some(TrainCommand::Configure(configure)) => run_configure(configure),
         Some(TrainCommand::Info(info)) => run_info(info),
+        Some(TrainCommand::Propose(propose)) => run_propose(propose),
         None => run_training(&args.run),
     })
 }

@@ -47,6 +47,9 @@ pub struct View {
 pub struct SceneData {
     pub name: String,
     pub views: Vec<View>,
+    /// Whether mask ids are local to each view (object proposals, [`crate::proposals`]: the
+    /// same object may have different ids in two views) rather than one per object of the scene.
+    pub view_local_ids: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -68,6 +71,8 @@ pub struct Dataset {
     pub root: PathBuf,
     pub layout: Layout,
     scenes: Vec<Source>,
+    /// Whether [`Dataset::load`] reads mask files ([`Dataset::without_masks`] turns it off).
+    read_masks: bool,
 }
 
 /// Parses a uORF image name `{idx}_sc{scene}_az{view}.png` into (idx, scene, view).
@@ -103,6 +108,7 @@ impl Dataset {
                 scenes: vec![Source::Colf(root.clone())],
                 root,
                 layout: Layout::Colf,
+                read_masks: true,
             });
         }
         let mut entries: Vec<(String, PathBuf)> = std::fs::read_dir(&root)
@@ -123,6 +129,7 @@ impl Dataset {
                 root,
                 layout: Layout::Colf,
                 scenes: colf,
+                read_masks: true,
             });
         }
         let mut by_scene: BTreeMap<u32, BTreeMap<u32, UorfView>> = BTreeMap::new();
@@ -159,6 +166,7 @@ impl Dataset {
         Ok(Dataset {
             root,
             layout: Layout::Uorf,
+            read_masks: true,
             scenes: by_scene
                 .into_iter()
                 .map(|(scene, views)| Source::Uorf {
@@ -189,14 +197,27 @@ impl Dataset {
         }
     }
 
+    /// The same dataset, loaded without ever opening a mask file (training without labels):
+    /// every view's `mask` is None.
+    pub fn without_masks(self) -> Dataset {
+        Dataset {
+            read_masks: false,
+            ..self
+        }
+    }
+
     /// Reads and decodes scene `index` (panics if `index >= len()`).
     pub fn load(&self, index: usize) -> Result<SceneData> {
         let name = self.scene_name(index);
         let views = match &self.scenes[index] {
-            Source::Colf(dir) => load_colf(dir)?,
-            Source::Uorf { views, .. } => load_uorf(views)?,
+            Source::Colf(dir) => load_colf(dir, self.read_masks)?,
+            Source::Uorf { views, .. } => load_uorf(views, self.read_masks)?,
         };
-        Ok(SceneData { name, views })
+        Ok(SceneData {
+            name,
+            views,
+            view_local_ids: false,
+        })
     }
 }
 
@@ -217,7 +238,7 @@ fn check_size(path: &Path, (w, h): (u32, u32), frame: &Frame) -> Result<()> {
     Ok(())
 }
 
-fn load_colf(dir: &Path) -> Result<Vec<View>> {
+fn load_colf(dir: &Path, read_masks: bool) -> Result<Vec<View>> {
     let transforms = dir.join("transforms.json");
     let cameras = Cameras::read(&transforms.to_string_lossy())?;
     cameras
@@ -235,7 +256,7 @@ fn load_colf(dir: &Path) -> Result<Vec<View>> {
             check_size(&path, (image.w, image.h), &frame)?;
             let stem = frame.stem().unwrap_or_default();
             let mask_path = path.with_file_name(format!("{stem}.mask.png"));
-            let mask = if mask_path.is_file() {
+            let mask = if read_masks && mask_path.is_file() {
                 let shown = mask_path.display().to_string();
                 let (w, h, labels) = decode_labels(&read(&mask_path)?, &shown)?;
                 check_size(&mask_path, (w, h), &frame)?;
@@ -290,7 +311,7 @@ fn uorf_background(levels: &[u8]) -> u8 {
     it.next().unwrap_or(first)
 }
 
-fn load_uorf(views: &[UorfView]) -> Result<Vec<View>> {
+fn load_uorf(views: &[UorfView], read_masks: bool) -> Result<Vec<View>> {
     let mut out = Vec::with_capacity(views.len());
     let mut masks: Vec<Option<(Vec<u8>, u8)>> = Vec::with_capacity(views.len());
     for v in views {
@@ -307,7 +328,7 @@ fn load_uorf(views: &[UorfView]) -> Result<Vec<View>> {
             intrinsics: Cameras::uorf_intrinsics(image.w, image.h),
             camera_to_world,
         };
-        masks.push(match &v.mask {
+        masks.push(match v.mask.as_ref().filter(|_| read_masks) {
             Some(path) => {
                 let (w, h, levels) = uorf_mask_levels(&read(path)?, &path.display().to_string())?;
                 check_size(path, (w, h), &frame)?;

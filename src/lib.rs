@@ -12,6 +12,7 @@
 //!   stage's `run`, and which model a stage uses ([`cli::model_path`]).
 //! - [`synth`]: synthetic scenes with ground truth (`colf-synth`).
 //! - [`dataset`]: multi-view scenes on disk (colf and uORF layouts) for training and evaluation.
+//! - [`proposals`]: object proposals from an image alone (no mask), for training without labels.
 //! - [`train`]: training batches, the training loop with checkpoints, averaging, plots.
 //! - [`encode`]: one image → slot codes (one pass, tries, refinement, redundant-slot drop).
 //! - [`edit`]: the JSON edit language of `colf-edit`.
@@ -38,6 +39,7 @@ pub mod io;
 pub mod metrics;
 pub mod model;
 pub mod optim;
+pub mod proposals;
 pub mod render;
 pub mod sheet;
 pub mod synth;

@@ -348,13 +348,10 @@ fn info(model: &Path) -> serde_json::Value {
     serde_json::from_slice(&out.stdout).unwrap()
 }
 
-#[test]
-fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
-    let dir = tempfile::tempdir().unwrap();
-    let data = data(dir.path());
-    // A copy of the training set with every mask file deleted: training never needs one.
-    let unlabelled = dir.path().join("unlabelled");
-    for scene in std::fs::read_dir(&data).unwrap() {
+/// A copy of the training set `data` with every mask file deleted: training never needs one.
+fn unlabelled_copy(data: &Path, dir: &Path) -> std::path::PathBuf {
+    let unlabelled = dir.join("unlabelled");
+    for scene in std::fs::read_dir(data).unwrap() {
         let scene = scene.unwrap().path();
         if !scene.is_dir() {
             continue;
@@ -370,6 +367,66 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         }
     }
     std::fs::copy(data.join("dataset.json"), unlabelled.join("dataset.json")).unwrap();
+    unlabelled
+}
+
+#[test]
+fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let unlabelled = unlabelled_copy(&data, dir.path());
+    let flags = [
+        "--proposals",
+        "--mask-weight",
+        "0.1",
+        "--attention-mask-weight",
+        "0.1",
+        "--object-fraction",
+        "0.2",
+        "--zero-background",
+        "--set",
+        "attention_frames=true",
+    ];
+    let on_unlabelled = dir.path().join("u.safetensors");
+    train(&unlabelled, &on_unlabelled, 6, &flags);
+    // The mask losses ran, on proposals.
+    let log = std::fs::read_to_string(format!("{}.log.jsonl", on_unlabelled.display())).unwrap();
+    let steps: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(steps.len(), 6);
+    assert!(steps
+        .iter()
+        .all(|s| s["mask_loss"].as_f64().is_some_and(|v| v > 0.0)
+            && s["attention_mask_loss"].as_f64().is_some_and(|v| v > 0.0)));
+    let described = info(&on_unlabelled);
+    let run = &described["training"][0];
+    assert_eq!(run["masks_in_data"], false);
+    assert_eq!(run["masks_used"], false);
+    assert_eq!(run["proposals"], true);
+    assert_eq!(run["losses"]["attention_mask"], 0.1);
+    assert_eq!(described["masks_used"], false);
+
+    // On the labelled original the masks are never opened: the same run gives the same weights.
+    let on_labelled = dir.path().join("l.safetensors");
+    train(&data, &on_labelled, 6, &flags);
+    let (a, b) = (
+        colf::model::Colf::load(&on_unlabelled).unwrap(),
+        colf::model::Colf::load(&on_labelled).unwrap(),
+    );
+    for (name, tensor) in a.parameters() {
+        let values = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+        assert_eq!(values(tensor), values(&b.parameters()[name]), "{name}");
+    }
+    assert_eq!(info(&on_labelled)["training"][0]["masks_in_data"], false);
+}
+
+#[test]
+fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let unlabelled = unlabelled_copy(&data, dir.path());
     let first = dir.path().join("first.safetensors");
     train(&unlabelled, &first, 6, &[]);
     let described = info(&first);

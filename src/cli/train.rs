@@ -127,6 +127,14 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0.0, value_name = "F")]
     pub object_fraction: f64,
 
+    /// Train without labels: mask files are never opened, and the mask losses
+    /// (--mask-weight, --attention-mask-weight) and --object-fraction use object proposals
+    /// computed from each training image instead: a smooth floor fitted to the view, the pixels
+    /// it cannot explain grouped into connected instances, shadows and edges left out
+    /// (docs/training.md; `colf-train propose` writes and scores them).
+    #[arg(long)]
+    pub proposals: bool,
+
     /// Mask losses (--mask-weight, --attention-mask-weight) ignore background pixels within PX
     /// pixels of an object: masks call an object's shadow background, but only the object's slot
     /// can draw it when the background cannot depend on the image (--zero-background).
@@ -210,6 +218,7 @@ pub enum TrainCommand {
     Average(AverageArgs),
     Configure(ConfigureArgs),
     Info(InfoArgs),
+    Propose(ProposeArgs),
 }
 
 /// `colf-train info`.
@@ -232,6 +241,89 @@ pub struct InfoArgs {
     /// The model file (`-`: stdin).
     #[arg(value_name = "MODEL")]
     pub model: String,
+}
+
+/// `colf-train propose`.
+#[derive(Args, Debug)]
+#[command(
+    about = "Compute the object proposals --proposals trains on, write them and score them",
+    long_about = "Compute, for every view of the first --scenes scenes of DIR, the object proposals `colf-train --proposals` uses in place of masks: a smooth floor (a cubic polynomial in the pixel coordinates, fitted by trimmed least squares) is fitted to the view; pixels farther from it than 0.08 in some channel are candidates; a candidate that is a uniformly darkened copy of the floor is a shadow; the other candidates' 8-connected components, largest first, are the instances 1, 2, ...; shadows, components under 0.1 % of the view and a one-pixel ring around each instance are unsure (255), which the mask losses leave to the colour loss. No mask file is read to make them. With --out, each view's proposals are written as an 8-bit grey PNG, OUT/SCENE/STEM.proposal.png (0 background, 1... instances, 255 unsure). Where the data has masks, they are then read to score the proposals: one JSON object on stdout with the means over views of fg_ari (the ARI over ground-truth object pixels, background and unsure counting as labels), fg_ari_on_instances (over the object pixels the instances cover), objects_called_background, instances_on_background and unsure (shares of pixels), and instances (per view).",
+    after_help = "Examples:\n  colf-train propose --data data/train --scenes 25\n  \
+colf-train propose --data data/train --scenes 4 --out proposals/"
+)]
+pub struct ProposeArgs {
+    /// The dataset (colf or uORF layout).
+    #[arg(long, value_name = "DIR")]
+    pub data: std::path::PathBuf,
+
+    /// Only the first N scenes.
+    #[arg(long, value_name = "N")]
+    pub scenes: Option<usize>,
+
+    /// Write each view's proposals as OUT/SCENE/STEM.proposal.png.
+    #[arg(long, value_name = "DIR")]
+    pub out: Option<std::path::PathBuf>,
+}
+
+/// Runs `colf-train propose`.
+pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
+    use crate::proposals::{propose, score, ProposalParams, UNSURE};
+    let images = crate::dataset::Dataset::open(&args.data)?.without_masks();
+    let masks = crate::dataset::Dataset::open(&args.data)?;
+    let n = args.scenes.map_or(images.len(), |m| m.min(images.len()));
+    let params = ProposalParams::default();
+    let (mut scores, mut views, mut instances) = (Vec::new(), 0usize, 0usize);
+    for i in 0..n {
+        let scene = images.load(i)?;
+        let mut proposed = Vec::with_capacity(scene.views.len());
+        for view in &scene.views {
+            let ids = propose(&view.image, &params);
+            instances += ids
+                .iter()
+                .filter(|&&id| id != 0 && id != UNSURE)
+                .max()
+                .copied()
+                .unwrap_or(0) as usize;
+            views += 1;
+            if let Some(out) = &args.out {
+                let stem = view
+                    .path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                let dir = out.join(&scene.name);
+                std::fs::create_dir_all(&dir)
+                    .map_err(|e| anyhow::anyhow!("{}: cannot create: {e}", dir.display()))?;
+                let png = crate::image_io::encode_png_grey(view.image.w, view.image.h, &ids);
+                crate::io::write_atomic(&dir.join(format!("{stem}.proposal.png")), &png)?;
+            }
+            proposed.push(ids);
+        }
+        // Scoring only, after the proposals are made: the masks are read here and nowhere else.
+        for (view, ids) in masks.load(i)?.views.iter().zip(&proposed) {
+            if let Some(mask) = &view.mask {
+                let shown = view.path.display();
+                scores.push(score(ids, mask).map_err(|e| anyhow::anyhow!("{shown}: {e}"))?);
+            }
+        }
+    }
+    let mean = |f: &dyn Fn(&crate::proposals::ProposalScore) -> Option<f64>| {
+        crate::metrics::mean_std(scores.iter().map(f)).0
+    };
+    let summary = serde_json::json!({
+        "data": args.data.display().to_string(),
+        "scenes": n,
+        "views": views,
+        "views_with_masks": scores.len(),
+        "instances": if views == 0 { 0.0 } else { instances as f64 / views as f64 },
+        "fg_ari": mean(&|s| s.fg_ari),
+        "fg_ari_on_instances": mean(&|s| s.fg_ari_on_instances),
+        "objects_called_background": mean(&|s| Some(s.objects_called_background)),
+        "instances_on_background": mean(&|s| Some(s.instances_on_background)),
+        "unsure": mean(&|s| Some(s.unsure)),
+    });
+    let text = serde_json::to_string_pretty(&summary)? + "\n";
+    crate::io::write_output("-", text.as_bytes(), false)
 }
 
 /// Runs `colf-train info`.
@@ -423,6 +515,7 @@ impl RunArgs {
             max_bad_steps: args.max_bad_steps,
             max_scenes: args.max_scenes,
             freeze: args.freeze.clone(),
+            proposals: args.proposals,
         })
     }
 }

@@ -28,10 +28,15 @@ pub struct TrainingRun {
     pub engine: Option<String>,
     /// Training scenes used.
     pub scenes: usize,
-    /// Whether any training scene had mask files.
+    /// Whether the training scenes' mask files were read: some were there and the run did not
+    /// skip them (`--proposals` never opens them).
     pub masks_in_data: bool,
     /// Whether a loss or the ray sampling used ground-truth masks.
     pub masks_used: bool,
+    /// Whether a loss or the ray sampling used object proposals computed from the images
+    /// (`--proposals`; no labels).
+    #[serde(default)]
+    pub proposals: bool,
     /// The identity of the model the run started from (`--init` or a grown model); none for a
     /// fresh model.
     #[serde(default)]
@@ -124,6 +129,7 @@ mod tests {
             scenes: 3,
             masks_in_data: false,
             masks_used: false,
+            proposals: true,
             init: Some("c1fd4506bf2ce4e6".into()),
             preset: None,
             config_overrides: vec![],

@@ -3,6 +3,7 @@
 //! known trap: a decoder that only ever reconstructs the view it was given need not learn 3D).
 
 use crate::dataset::SceneData;
+use crate::proposals::UNSURE;
 use anyhow::{bail, Result};
 use glam::DVec3;
 use rand::rngs::StdRng;
@@ -62,14 +63,16 @@ pub struct MaskExclusion<'a> {
 }
 
 impl MaskExclusion<'_> {
-    /// Whether the mask losses leave pixel (x, y) to the colour loss.
+    /// Whether the mask losses leave pixel (x, y) to the colour loss: an [`UNSURE`] pixel of
+    /// a proposal, or a background pixel in an object's band or shadow.
     pub fn leaves(&self, x: usize, y: usize) -> bool {
         let p = y * self.w + x;
-        self.mask[p] == 0
-            && (self
-                .shadow_below
-                .is_some_and(|t| brightness(self.image, p) < t)
-                || near_object(self.mask, self.w, self.h, x, y, self.margin))
+        self.mask[p] == UNSURE
+            || self.mask[p] == 0
+                && (self
+                    .shadow_below
+                    .is_some_and(|t| brightness(self.image, p) < t)
+                    || near_object(self.mask, self.w, self.h, x, y, self.margin))
     }
 }
 
@@ -107,6 +110,9 @@ pub struct SceneSample {
     /// The input view's shadow threshold (`RaySampling::shadow_depth`; None when off).
     pub input_shadow_below: Option<f32>,
     pub has_masks: bool,
+    /// Some(rays per view) when `ids` are local to each view (object proposals): objects are
+    /// then matched to slots view by view, in blocks of that many rays.
+    pub view_block: Option<usize>,
 }
 
 /// Draws a sample of `scene` with `rng`.
@@ -146,12 +152,15 @@ pub fn sample_scene(
         near_object: Vec::with_capacity(total),
         input_shadow_below: None,
         has_masks,
+        view_block: scene.view_local_ids.then_some(sampling.rays_per_view),
     };
     for &v in &views {
         let view = &scene.views[v];
         let (w, h) = (view.image.w as usize, view.image.h as usize);
         let object_pixels: Vec<usize> = match (&view.mask, sampling.object_fraction > 0.0) {
-            (Some(mask), true) => (0..w * h).filter(|&p| mask[p] > 0).collect(),
+            (Some(mask), true) => (0..w * h)
+                .filter(|&p| mask[p] > 0 && mask[p] != UNSURE)
+                .collect(),
             _ => Vec::new(),
         };
         let n_object = if object_pixels.is_empty() {
@@ -207,6 +216,22 @@ mod tests {
         let wide: Vec<bool> = (0..5).map(|x| near_object(&mask, 5, 1, x, 0, 2)).collect();
         assert_eq!(wide, vec![true, true, false, true, true]);
         assert!((0..5).all(|x| !near_object(&mask, 5, 1, x, 0, 0)));
+    }
+
+    #[test]
+    fn unsure_proposal_pixels_are_left_to_the_colour_loss() {
+        let mask = [0u8, 1, UNSURE, 0];
+        let image = [0.5f32; 12];
+        let exclusion = MaskExclusion {
+            mask: &mask,
+            image: &image,
+            w: 4,
+            h: 1,
+            margin: 0,
+            shadow_below: None,
+        };
+        let left: Vec<bool> = (0..4).map(|x| exclusion.leaves(x, 0)).collect();
+        assert_eq!(left, vec![false, false, true, false]);
     }
 
     #[test]

@@ -11,6 +11,7 @@ use crate::model::encoder::image_tensor;
 use crate::model::history::{self, TrainingRun};
 use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
 use crate::optim::{Adam, AdamConfig};
+use crate::proposals::{self, ProposalParams, UNSURE};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{DType, Tensor, D};
@@ -106,6 +107,11 @@ pub struct TrainOptions {
     pub max_bad_steps: u64,
     /// Use only the first N training scenes (overfitting tests).
     pub max_scenes: Option<usize>,
+    /// Object proposals computed from each training image ([`crate::proposals`]) stand in for
+    /// masks: mask files are never opened, and the mask losses and the sampling of rays on
+    /// objects use the proposals (ids local to each view).
+    #[serde(default)]
+    pub proposals: bool,
     /// Parameters whose names start with one of these are not updated (e.g. `encoder.` and
     /// `slot_attention.`, to adapt the decoder to a new look while keeping how slots group).
     #[serde(default)]
@@ -232,20 +238,37 @@ fn step_rng(seed: u64, step: u64) -> StdRng {
     StdRng::seed_from_u64(z ^ (z >> 31))
 }
 
-fn load_scenes(path: &Path, max: Option<usize>) -> Result<Vec<SceneData>> {
-    let data = Dataset::open(path)?;
+/// The first `max` scenes of the training data; with `proposals`, their mask files are never
+/// read, and each view's mask is its object proposals instead.
+fn load_scenes(path: &Path, max: Option<usize>, proposals: bool) -> Result<Vec<SceneData>> {
+    let mut data = Dataset::open(path)?;
     if data.is_empty() {
         bail!("{}: no scenes found", path.display());
     }
+    if proposals {
+        data = data.without_masks();
+    }
     let n = max.map_or(data.len(), |m| m.min(data.len()));
-    (0..n).map(|i| data.load(i)).collect()
+    (0..n)
+        .map(|i| {
+            let mut scene = data.load(i)?;
+            if proposals {
+                let params = ProposalParams::default();
+                for view in &mut scene.views {
+                    view.mask = Some(proposals::propose(&view.image, &params));
+                }
+                scene.view_local_ids = true;
+            }
+            Ok(scene)
+        })
+        .collect()
 }
 
 impl Trainer {
     /// A new run, or (`resume`) the run saved in `opts.checkpoint_path()`.
     pub fn new(opts: TrainOptions, resume: bool) -> Result<Trainer> {
         opts.validate()?;
-        let data = load_scenes(&opts.data, opts.max_scenes)?;
+        let data = load_scenes(&opts.data, opts.max_scenes, opts.proposals)?;
         let (colf, adam_state, step, bad_steps, earlier_runs, init_identity) = if resume {
             let path = opts.checkpoint_path();
             let bytes = std::fs::read(&path).with_context(|| {
@@ -734,7 +757,7 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<SavedRun> {
 /// This run's training record (its `steps` are filled in as it goes): the data, whether masks
 /// were there and whether anything used them, the schedule and the loss weights.
 fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> TrainingRun {
-    let masks_used =
+    let mask_supervision =
         opts.mask_weight > 0.0 || opts.attention_mask_weight > 0.0 || opts.object_fraction > 0.0;
     let losses = [
         ("l2", 1.0),
@@ -751,10 +774,12 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         data: opts.data.display().to_string(),
         engine: dataset_engine(&opts.data),
         scenes: data.len(),
-        masks_in_data: data
-            .iter()
-            .any(|s| s.views.iter().any(|v| v.mask.is_some())),
-        masks_used,
+        masks_in_data: !opts.proposals
+            && data
+                .iter()
+                .any(|s| s.views.iter().any(|v| v.mask.is_some())),
+        masks_used: mask_supervision && !opts.proposals,
+        proposals: mask_supervision && opts.proposals,
         preset: init.is_none().then(|| opts.preset.clone()),
         init,
         config_overrides: opts.config_overrides.clone(),
@@ -801,10 +826,20 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     let mut index = Vec::with_capacity(samples.len() * r);
     let mut valid = Vec::with_capacity(samples.len() * r);
     for (bi, sample) in samples.iter().enumerate() {
-        let scene = &weights[bi * r * s..(bi + 1) * r * s];
-        let (i, v) = match_objects(&sample.ids, scene, s, Some(&sample.near_object));
-        index.extend(i);
-        valid.extend(v);
+        // Scene-wide ids are matched over all the scene's rays; view-local ones view by view.
+        let block = sample.view_block.unwrap_or(r).max(1);
+        for start in (0..r).step_by(block) {
+            let end = (start + block).min(r);
+            let rays = &weights[(bi * r + start) * s..(bi * r + end) * s];
+            let (i, v) = match_objects(
+                &sample.ids[start..end],
+                rays,
+                s,
+                Some(&sample.near_object[start..end]),
+            );
+            index.extend(i);
+            valid.extend(v);
+        }
     }
     (index, valid)
 }
@@ -821,7 +856,11 @@ fn match_objects(
     ignored: Option<&[bool]>,
 ) -> (Vec<u32>, Vec<f32>) {
     use pathfinding::prelude::{kuhn_munkres, Matrix};
-    let mut objects: Vec<u8> = ids.iter().copied().filter(|&id| id > 0).collect();
+    let mut objects: Vec<u8> = ids
+        .iter()
+        .copied()
+        .filter(|&id| id > 0 && id != UNSURE)
+        .collect();
     objects.sort_unstable();
     objects.dedup();
     let k = s - 1;
@@ -928,12 +967,13 @@ fn ray_metrics(
         let mut pred = Vec::new();
         let mut gt = Vec::new();
         let mut won = vec![false; s];
+        let block = sample.view_block.unwrap_or(r).max(1);
         for (ri, &id) in sample.ids.iter().enumerate() {
             let at = bi * r + ri;
             let w = &weights[at * s..(at + 1) * s];
             let label = (0..s).fold(0, |best, i| if w[i] > w[best] { i } else { best });
             won[label] = true;
-            if id > 0 {
+            if id > 0 && id != UNSURE {
                 for c in 0..3 {
                     let e = (rgb[3 * at + c] - targets[3 * at + c]) as f64;
                     obj_sq += e * e;
@@ -941,7 +981,8 @@ fn ray_metrics(
                 obj_n += 3;
                 fg_sum += 1.0 - w[0] as f64;
                 pred.push(label as u32);
-                gt.push(id as u32);
+                // View-local ids (proposals) stay apart from the same id in another view.
+                gt.push((ri / block) as u32 * 256 + id as u32);
             }
         }
         used += won[1..].iter().filter(|&&x| x).count();

@@ -1,0 +1,564 @@
+//! Object proposals from an image alone: which pixels are objects, grouped into instances,
+//! without any ground-truth mask.
+//!
+//! In a CLEVR-like view the floor fills the frame and changes slowly across it (constant in
+//! colf-synth's analytic scenes, a smooth light falloff in Blender's). So:
+//! 1. **Background**: a low-order polynomial in the pixel coordinates is fitted to each colour
+//!    channel by trimmed least squares — refitted on the pixels it explains, so objects (a few
+//!    per cent of the view) do not pull it.
+//! 2. **Candidates**: pixels farther from that background than `threshold` in some channel.
+//! 3. **Shadows**: a candidate that is a uniformly darkened copy of the background (equal ratios
+//!    in R, G and B, below `shadow_ratio`) is a shadow, not an object, and is marked
+//!    [`UNSURE`]: a shadow belongs to no instance, and a grey object can look like one.
+//! 4. **Instances**: 8-connected components of the remaining candidates, numbered 1, 2, … from
+//!    the largest; components smaller than `min_area` of the view, and a `ring` of pixels
+//!    around every instance (soft, antialiased edges), are [`UNSURE`] as well.
+//!
+//! The trainer uses proposals where it would use mask files (`colf-train --proposals`): ids
+//! are local to each view (the same object may get different ids in two views), and
+//! [`UNSURE`] pixels are left to the colour loss. `colf-train propose` writes them as mask PNGs
+//! and scores them against ground truth where there is some.
+
+use crate::image_io::RgbImage32;
+use std::collections::BTreeMap;
+
+/// Proposal id of a pixel that is neither background nor a proposed object: shadows, specks,
+/// instance borders. Losses built on proposals ignore it.
+pub const UNSURE: u8 = 255;
+
+/// The proposal recipe's settings (the defaults were chosen on 25 training scenes of
+/// colf-synth's analytic clevr567 and 25 of its Blender engine, scored against their masks).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProposalParams {
+    /// Total degree of the background polynomial in x and y.
+    pub degree: usize,
+    /// Trimming passes of the background fit.
+    pub passes: usize,
+    /// A pixel is a candidate when some channel differs from the background by more (sRGB).
+    pub threshold: f32,
+    /// Shadows: the mean of the three channel ratios to the background is below this…
+    pub shadow_ratio: f32,
+    /// …and no channel's ratio is farther from that mean than this.
+    pub shadow_spread: f32,
+    /// Neighbouring candidates join one instance only if their chromaticities (r, g, b over
+    /// r + g + b) differ by less than this in every channel: shading changes brightness, not
+    /// chromaticity, so this splits objects of different colours that touch in the view.
+    pub chroma_edge: f32,
+    /// Fragments smaller than this share of the view (a highlight, an antialiased edge) join
+    /// the neighbouring instance they share the longest border with.
+    pub merge_below: f32,
+    /// Instances smaller than this share of the view are [`UNSURE`].
+    pub min_area: f32,
+    /// Width in pixels of the [`UNSURE`] band around each instance.
+    pub ring: usize,
+}
+
+impl Default for ProposalParams {
+    fn default() -> Self {
+        ProposalParams {
+            degree: 3,
+            passes: 5,
+            threshold: 0.08,
+            shadow_ratio: 0.97,
+            shadow_spread: 0.06,
+            chroma_edge: 0.08,
+            merge_below: 0.002,
+            min_area: 0.001,
+            ring: 1,
+        }
+    }
+}
+
+/// Proposal ids of `image`, row-major: 0 background, 1…254 instances from the largest, and
+/// [`UNSURE`]. Instances past 254 (never seen in practice) are [`UNSURE`].
+pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
+    let (w, h) = (image.w as usize, image.h as usize);
+    let n = w * h;
+    if n == 0 {
+        return Vec::new();
+    }
+    let background = fit_background(image, params.degree, params.passes);
+    let data = &image.data;
+    let mut object = vec![false; n];
+    let mut ids = vec![0u8; n];
+    for p in 0..n {
+        let pixel = &data[3 * p..3 * p + 3];
+        let floor = &background[3 * p..3 * p + 3];
+        let far = (0..3).any(|c| (pixel[c] - floor[c]).abs() > params.threshold);
+        if !far {
+            continue;
+        }
+        let ratios: [f32; 3] = std::array::from_fn(|c| pixel[c] / floor[c].max(1e-3));
+        let mean = (ratios[0] + ratios[1] + ratios[2]) / 3.0;
+        let spread = ratios
+            .iter()
+            .map(|r| (r - mean).abs())
+            .fold(0.0f32, f32::max);
+        if mean < params.shadow_ratio && spread < params.shadow_spread {
+            ids[p] = UNSURE;
+        } else {
+            object[p] = true;
+        }
+    }
+    let min_area = ((params.min_area as f64 * n as f64).ceil() as usize).max(1);
+    let chroma: Vec<[f32; 3]> = (0..n)
+        .map(|p| {
+            let px = &data[3 * p..3 * p + 3];
+            let sum = (px[0] + px[1] + px[2]).max(1e-3);
+            [px[0] / sum, px[1] / sum, px[2] / sum]
+        })
+        .collect();
+    let joined = |p: usize, q: usize| {
+        (0..3).all(|c| (chroma[p][c] - chroma[q][c]).abs() < params.chroma_edge)
+    };
+    let fragments = components_8(&object, w, h, joined);
+    let merge_below = (params.merge_below as f64 * n as f64).ceil() as usize;
+    let mut components = merge_fragments(fragments, w, h, merge_below);
+    // Largest first; ties by the first pixel, so the numbering is deterministic.
+    components.sort_by_key(|c| (std::cmp::Reverse(c.len()), c[0]));
+    let mut next = 1u16;
+    for component in &components {
+        let id = if component.len() >= min_area && next < UNSURE as u16 {
+            next += 1;
+            (next - 1) as u8
+        } else {
+            UNSURE
+        };
+        for &p in component {
+            ids[p] = id;
+        }
+    }
+    if params.ring > 0 {
+        let instance: Vec<bool> = ids.iter().map(|&id| id != 0 && id != UNSURE).collect();
+        for (p, id) in ids.iter_mut().enumerate() {
+            if *id == 0 && near(&instance, w, h, p, params.ring) {
+                *id = UNSURE;
+            }
+        }
+    }
+    ids
+}
+
+/// How a view's proposals compare with its ground-truth mask (only to report their quality:
+/// training never sees the masks).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct ProposalScore {
+    /// FG-ARI of the proposals: the ARI over the ground truth's object pixels, with background
+    /// and [`UNSURE`] counting as labels of their own. None when the view shows no object.
+    pub fg_ari: Option<f64>,
+    /// The ARI over the object pixels the proposals put in an instance: how well the instances
+    /// group what they cover.
+    pub fg_ari_on_instances: Option<f64>,
+    /// Share of the ground truth's object pixels the proposals call background (they teach the
+    /// background to take objects).
+    pub objects_called_background: f64,
+    /// Share of the instance pixels that are background in the ground truth (shadows, floor).
+    pub instances_on_background: f64,
+    /// Share of the view marked [`UNSURE`].
+    pub unsure: f64,
+}
+
+/// Scores proposal ids against a ground-truth mask of the same size (0 = background).
+pub fn score(ids: &[u8], truth: &[u8]) -> anyhow::Result<ProposalScore> {
+    if ids.len() != truth.len() {
+        anyhow::bail!(
+            "the proposals have {} pixels and the mask {}",
+            ids.len(),
+            truth.len()
+        );
+    }
+    let as_u32 = |v: &[u8]| v.iter().map(|&x| x as u32).collect::<Vec<u32>>();
+    let fg_ari = crate::metrics::fg_ari(&as_u32(ids), &as_u32(truth))?;
+    let is_instance = |id: u8| id != 0 && id != UNSURE;
+    let (on_pred, on_truth): (Vec<u32>, Vec<u32>) = ids
+        .iter()
+        .zip(truth)
+        .filter(|&(&p, &t)| t != 0 && is_instance(p))
+        .map(|(&p, &t)| (p as u32, t as u32))
+        .unzip();
+    let fg_ari_on_instances = if on_truth.is_empty() {
+        None
+    } else {
+        Some(crate::metrics::ari(&on_pred, &on_truth)?)
+    };
+    let share = |count: usize, of: usize| {
+        if of == 0 {
+            0.0
+        } else {
+            count as f64 / of as f64
+        }
+    };
+    let objects = truth.iter().filter(|&&t| t != 0).count();
+    let instances = ids.iter().filter(|&&p| is_instance(p)).count();
+    let pairs = || ids.iter().zip(truth);
+    Ok(ProposalScore {
+        fg_ari,
+        fg_ari_on_instances,
+        objects_called_background: share(
+            pairs().filter(|&(&p, &t)| t != 0 && p == 0).count(),
+            objects,
+        ),
+        instances_on_background: share(
+            pairs().filter(|&(&p, &t)| t == 0 && is_instance(p)).count(),
+            instances,
+        ),
+        unsure: share(ids.iter().filter(|&&p| p == UNSURE).count(), ids.len()),
+    })
+}
+
+/// The background colour of every pixel (RGB, row-major): per channel, a polynomial of total
+/// degree `degree` in x, y ∈ [−1, 1], fitted by least squares, then `passes − 1` times refitted
+/// on the pixels whose largest channel residual is under 2.5× the 75th percentile of the kept
+/// pixels' (at least 0.01).
+pub fn fit_background(image: &RgbImage32, degree: usize, passes: usize) -> Vec<f32> {
+    let (w, h) = (image.w as usize, image.h as usize);
+    let n = w * h;
+    let terms: Vec<(usize, usize)> = (0..=degree)
+        .flat_map(|i| (0..=degree - i).map(move |j| (i, j)))
+        .collect();
+    let basis = |p: usize| -> Vec<f64> {
+        let x = ((p % w) as f64 + 0.5) / w as f64 * 2.0 - 1.0;
+        let y = ((p / w) as f64 + 0.5) / h as f64 * 2.0 - 1.0;
+        terms
+            .iter()
+            .map(|&(i, j)| x.powi(i as i32) * y.powi(j as i32))
+            .collect()
+    };
+    let rows: Vec<Vec<f64>> = (0..n).map(basis).collect();
+    let mut keep = vec![true; n];
+    let mut fitted = vec![0f32; 3 * n];
+    for pass in 0..passes.max(1) {
+        let coefficients = least_squares(&rows, &image.data, &keep, terms.len());
+        let mut residuals = Vec::with_capacity(n);
+        for (p, row) in rows.iter().enumerate() {
+            let mut worst = 0f32;
+            for c in 0..3 {
+                let v: f64 = row.iter().zip(&coefficients[c]).map(|(a, b)| a * b).sum();
+                fitted[3 * p + c] = v as f32;
+                worst = worst.max((image.data[3 * p + c] - v as f32).abs());
+            }
+            residuals.push(worst);
+        }
+        if pass + 1 == passes.max(1) {
+            break;
+        }
+        let mut kept: Vec<f32> = (0..n).filter(|&p| keep[p]).map(|p| residuals[p]).collect();
+        if kept.is_empty() {
+            break;
+        }
+        let at = ((kept.len() * 3) / 4).min(kept.len() - 1);
+        let (_, q75, _) = kept.select_nth_unstable_by(at, f32::total_cmp);
+        let limit = (*q75 * 2.5).max(0.01);
+        let next: Vec<bool> = residuals.iter().map(|&r| r < limit).collect();
+        // Too few pixels left to fit the polynomial: keep the previous fit's pixels.
+        if next.iter().filter(|&&k| k).count() < 4 * terms.len() {
+            break;
+        }
+        keep = next;
+    }
+    fitted
+}
+
+/// Per channel, the coefficients minimising Σ_kept (row·coef − value)², from the normal
+/// equations (solved with partial pivoting; a singular system, e.g. too few pixels, falls back
+/// to the kept pixels' mean colour).
+fn least_squares(rows: &[Vec<f64>], rgb: &[f32], keep: &[bool], m: usize) -> [Vec<f64>; 3] {
+    let mut normal = vec![0f64; m * m];
+    let mut rhs = [vec![0f64; m], vec![0f64; m], vec![0f64; m]];
+    let (mut sum, mut count) = ([0f64; 3], 0usize);
+    for (p, row) in rows.iter().enumerate().filter(|&(p, _)| keep[p]) {
+        for a in 0..m {
+            for b in 0..m {
+                normal[a * m + b] += row[a] * row[b];
+            }
+            for c in 0..3 {
+                rhs[c][a] += row[a] * rgb[3 * p + c] as f64;
+            }
+        }
+        for c in 0..3 {
+            sum[c] += rgb[3 * p + c] as f64;
+        }
+        count += 1;
+    }
+    std::array::from_fn(|c| {
+        solve(normal.clone(), rhs[c].clone(), m).unwrap_or_else(|| {
+            let mut constant = vec![0f64; m];
+            // Term (0, 0) is the constant and comes first.
+            constant[0] = sum[c] / count.max(1) as f64;
+            constant
+        })
+    })
+}
+
+/// Solves the m×m system `a x = b` by Gaussian elimination with partial pivoting; None when it
+/// is (numerically) singular.
+fn solve(mut a: Vec<f64>, mut b: Vec<f64>, m: usize) -> Option<Vec<f64>> {
+    let scale = a.iter().fold(0f64, |s, v| s.max(v.abs())).max(1e-300);
+    for col in 0..m {
+        let pivot =
+            (col..m).max_by(|&i, &j| a[i * m + col].abs().total_cmp(&a[j * m + col].abs()))?;
+        if a[pivot * m + col].abs() <= 1e-12 * scale {
+            return None;
+        }
+        if pivot != col {
+            for k in 0..m {
+                a.swap(pivot * m + k, col * m + k);
+            }
+            b.swap(pivot, col);
+        }
+        for row in col + 1..m {
+            let f = a[row * m + col] / a[col * m + col];
+            if f != 0.0 {
+                for k in col..m {
+                    a[row * m + k] -= f * a[col * m + k];
+                }
+                b[row] -= f * b[col];
+            }
+        }
+    }
+    let mut x = vec![0f64; m];
+    for row in (0..m).rev() {
+        let tail: f64 = (row + 1..m).map(|k| a[row * m + k] * x[k]).sum();
+        x[row] = (b[row] - tail) / a[row * m + row];
+    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Merges every component smaller than `below` pixels into the neighbouring component (8-
+/// connected) it shares the most border pixel pairs with, smallest first, until none is left
+/// that has a neighbour. Each result keeps its pixels sorted.
+fn merge_fragments(
+    mut components: Vec<Vec<usize>>,
+    w: usize,
+    h: usize,
+    below: usize,
+) -> Vec<Vec<usize>> {
+    let mut owner = vec![usize::MAX; w * h];
+    for (i, c) in components.iter().enumerate() {
+        for &p in c {
+            owner[p] = i;
+        }
+    }
+    loop {
+        // The smallest fragment with a neighbour (ties: the first pixel), and that neighbour.
+        let mut best: Option<(usize, usize, usize)> = None; // (size, fragment, into)
+        for (i, c) in components.iter().enumerate() {
+            if c.is_empty()
+                || c.len() >= below
+                || best.is_some_and(|b| (b.0, components[b.1][0]) <= (c.len(), c[0]))
+            {
+                continue;
+            }
+            let mut contacts: BTreeMap<usize, usize> = BTreeMap::new();
+            for &p in c {
+                for q in neighbours_8(p, w, h) {
+                    let o = owner[q];
+                    if o != usize::MAX && o != i {
+                        *contacts.entry(o).or_default() += 1;
+                    }
+                }
+            }
+            if let Some((&into, _)) = contacts
+                .iter()
+                .max_by_key(|&(&o, &k)| (k, std::cmp::Reverse(o)))
+            {
+                best = Some((c.len(), i, into));
+            }
+        }
+        let Some((_, fragment, into)) = best else {
+            break;
+        };
+        let moved = std::mem::take(&mut components[fragment]);
+        for &p in &moved {
+            owner[p] = into;
+        }
+        components[into].extend(moved);
+        components[into].sort_unstable();
+    }
+    components.retain(|c| !c.is_empty());
+    components
+}
+
+/// The 8 neighbours of pixel `p` inside a w×h grid.
+fn neighbours_8(p: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (x, y) = ((p % w) as isize, (p / w) as isize);
+    (-1..=1isize)
+        .flat_map(move |dy| (-1..=1isize).map(move |dx| (x + dx, y + dy)))
+        .filter(move |&(nx, ny)| {
+            (nx, ny) != (x, y) && nx >= 0 && ny >= 0 && nx < w as isize && ny < h as isize
+        })
+        .map(move |(nx, ny)| ny as usize * w + nx as usize)
+}
+
+/// The 8-connected components of the `true` pixels of a w×h grid, where two neighbours are
+/// connected only if `joined(p, q)`; each a list of pixel indices starting with its first pixel
+/// in row-major order.
+fn components_8(
+    on: &[bool],
+    w: usize,
+    h: usize,
+    joined: impl Fn(usize, usize) -> bool,
+) -> Vec<Vec<usize>> {
+    let mut seen = vec![false; on.len()];
+    let mut out = Vec::new();
+    for start in 0..on.len() {
+        if !on[start] || seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        let mut component = vec![start];
+        let mut next = 0;
+        while next < component.len() {
+            let p = component[next];
+            next += 1;
+            for q in neighbours_8(p, w, h) {
+                if on[q] && !seen[q] && joined(p, q) {
+                    seen[q] = true;
+                    component.push(q);
+                }
+            }
+        }
+        component.sort_unstable();
+        out.push(component);
+    }
+    out
+}
+
+/// Whether some `set` pixel lies within `radius` pixels (Chebyshev) of pixel `p`.
+fn near(set: &[bool], w: usize, h: usize, p: usize, radius: usize) -> bool {
+    let (x, y) = (p % w, p / w);
+    let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(w - 1));
+    let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
+    (y0..=y1).any(|yy| set[yy * w + x0..=yy * w + x1].iter().any(|&s| s))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn image(w: u32, h: u32, f: impl Fn(usize, usize) -> [f32; 3]) -> RgbImage32 {
+        let data = (0..(w * h) as usize)
+            .flat_map(|p| f(p % w as usize, p / w as usize))
+            .collect();
+        RgbImage32 { w, h, data }
+    }
+
+    /// A 32×32 floor with a brightness gradient, a red square, a blue square touching nothing,
+    /// a grey shadow (the floor × 0.6) and a one-pixel speck.
+    fn scene() -> RgbImage32 {
+        image(32, 32, |x, y| {
+            let floor = 0.4 + 0.3 * y as f32 / 31.0 + 0.05 * x as f32 / 31.0;
+            if (4..10).contains(&x) && (4..10).contains(&y) {
+                [0.8, 0.1, 0.1]
+            } else if (20..24).contains(&x) && (18..24).contains(&y) {
+                [0.1, 0.2, 0.9]
+            } else if (4..12).contains(&x) && (20..26).contains(&y) {
+                [floor * 0.6; 3]
+            } else if (x, y) == (28, 4) {
+                [0.0, 1.0, 0.0]
+            } else {
+                [floor; 3]
+            }
+        })
+    }
+
+    #[test]
+    fn the_background_fit_recovers_a_smooth_floor_under_objects() {
+        let img = scene();
+        let fitted = fit_background(&img, 3, 5);
+        // Under the red square the fit is the floor, not the square's colour.
+        let p = 6 * 32 + 6;
+        let floor = 0.4 + 0.3 * 6.0 / 31.0 + 0.05 * 6.0 / 31.0;
+        for c in 0..3 {
+            assert!(
+                (fitted[3 * p + c] - floor).abs() < 0.01,
+                "{}",
+                fitted[3 * p + c]
+            );
+        }
+    }
+
+    #[test]
+    fn objects_become_instances_largest_first_and_shadows_unsure() {
+        let ids = propose(&scene(), &ProposalParams::default());
+        let at = |x: usize, y: usize| ids[y * 32 + x];
+        assert_eq!(at(6, 6), 1, "the red square (36 px) is the largest");
+        assert_eq!(at(21, 20), 2, "the blue square (24 px)");
+        assert_eq!(at(8, 23), UNSURE, "the shadow");
+        assert_eq!(
+            at(28, 4),
+            UNSURE,
+            "a one-pixel speck is too small to be an instance"
+        );
+        assert_eq!(at(10, 6), UNSURE, "the ring around an instance");
+        assert_eq!(at(16, 14), 0, "open floor");
+        assert_eq!(at(0, 31), 0);
+    }
+
+    #[test]
+    fn a_plain_or_tiny_image_has_no_instances() {
+        let flat = image(16, 16, |_, _| [0.5, 0.5, 0.5]);
+        assert!(propose(&flat, &ProposalParams::default())
+            .iter()
+            .all(|&id| id == 0));
+        let one = image(1, 1, |_, _| [0.2, 0.9, 0.1]);
+        assert_eq!(propose(&one, &ProposalParams::default()).len(), 1);
+        let empty = RgbImage32 {
+            w: 0,
+            h: 0,
+            data: vec![],
+        };
+        assert!(propose(&empty, &ProposalParams::default()).is_empty());
+    }
+
+    #[test]
+    fn scores_compare_instances_with_the_truth() {
+        // Truth: objects 1 and 2. Proposals merge them into instance 1, call one object pixel
+        // background, put an instance on a background pixel and leave one pixel unsure.
+        let truth = [1u8, 1, 2, 2, 0, 0, 0, 2];
+        let ids = [1u8, 1, 1, 1, 1, 0, UNSURE, 0];
+        let s = score(&ids, &truth).unwrap();
+        assert_eq!(
+            s.fg_ari_on_instances,
+            Some(0.0),
+            "one instance over two objects"
+        );
+        assert!((s.objects_called_background - 0.2).abs() < 1e-12);
+        assert!((s.instances_on_background - 0.2).abs() < 1e-12);
+        assert!((s.unsure - 0.125).abs() < 1e-12);
+        let perfect = score(&truth, &truth).unwrap();
+        assert_eq!(perfect.fg_ari, Some(1.0));
+        assert!(score(&ids, &truth[..3]).is_err());
+    }
+
+    #[test]
+    fn components_are_8_connected() {
+        // Two diagonal pixels touch; a third pixel apart does not.
+        let mut on = vec![false; 16];
+        on[0] = true;
+        on[5] = true;
+        on[15] = true;
+        let c = components_8(&on, 4, 4, |_, _| true);
+        assert_eq!(c, vec![vec![0, 5], vec![15]]);
+        // A join condition splits them.
+        let c = components_8(&on, 4, 4, |_, _| false);
+        assert_eq!(c, vec![vec![0], vec![5], vec![15]]);
+    }
+
+    #[test]
+    fn fragments_join_the_neighbour_with_the_longest_border() {
+        // 4×2: a (pixels 0, 1, 4, 5), a one-pixel fragment (2) touching a on two pixels and b
+        // (3, 7) on two as well, ties go to the lower index; a fragment with no neighbour stays.
+        let merged = merge_fragments(vec![vec![0, 1, 4, 5], vec![2], vec![3, 7]], 4, 2, 2);
+        assert_eq!(merged, vec![vec![0, 1, 2, 4, 5], vec![3, 7]]);
+        let alone = merge_fragments(vec![vec![0], vec![7]], 4, 2, 5);
+        assert_eq!(alone, vec![vec![0], vec![7]]);
+    }
+
+    #[test]
+    fn singular_systems_fall_back_to_none() {
+        assert_eq!(solve(vec![1.0, 2.0, 2.0, 4.0], vec![1.0, 2.0], 2), None);
+        let x = solve(vec![2.0, 0.0, 0.0, 4.0], vec![2.0, 8.0], 2).unwrap();
+        assert_eq!(x, vec![1.0, 2.0]);
+    }
+}
