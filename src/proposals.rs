@@ -7,9 +7,10 @@
 //!    channel by trimmed least squares — refitted on the pixels it explains, so objects (a few
 //!    per cent of the view) do not pull it.
 //! 2. **Candidates**: pixels farther from that background than `threshold` in some channel.
-//! 3. **Shadows**: a candidate that is a uniformly darkened copy of the background (equal ratios
-//!    in R, G and B, below `shadow_ratio`) is a shadow, not an object, and is marked
-//!    [`UNSURE`]: a shadow belongs to no instance, and a grey object can look like one.
+//! 3. **Lighting**: a candidate that is a uniformly darkened or brightened copy of the
+//!    background (equal ratios in R, G and B, below `shadow_ratio` or above its inverse) is a
+//!    shadow or a light's bright spot the polynomial did not follow, not an object, and is
+//!    marked [`UNSURE`]: it belongs to no instance (a grey object can look like one too).
 //! 4. **Instances**: 8-connected components of the remaining candidates, numbered 1, 2, … from
 //!    the largest; components smaller than `min_area` of the view, and a `ring` of pixels
 //!    around every instance (soft, antialiased edges), are [`UNSURE`] as well.
@@ -36,7 +37,8 @@ pub struct ProposalParams {
     pub passes: usize,
     /// A pixel is a candidate when some channel differs from the background by more (sRGB).
     pub threshold: f32,
-    /// Shadows: the mean of the three channel ratios to the background is below this…
+    /// Lighting, not objects: the mean of the three channel ratios to the background is below
+    /// this (a shadow) or above its inverse (a bright spot)…
     pub shadow_ratio: f32,
     /// …and no channel's ratio is farther from that mean than this.
     pub shadow_spread: f32,
@@ -94,7 +96,9 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
             .iter()
             .map(|r| (r - mean).abs())
             .fold(0.0f32, f32::max);
-        if mean < params.shadow_ratio && spread < params.shadow_spread {
+        if (mean < params.shadow_ratio || mean > 1.0 / params.shadow_ratio)
+            && spread < params.shadow_spread
+        {
             ids[p] = UNSURE;
         } else {
             object[p] = true;
@@ -444,7 +448,7 @@ mod tests {
     }
 
     /// A 32×32 floor with a brightness gradient, a red square, a blue square touching nothing,
-    /// a grey shadow (the floor × 0.6) and a one-pixel speck.
+    /// a grey shadow (the floor × 0.6), a bright spot (× 1.4) and a one-pixel speck.
     fn scene() -> RgbImage32 {
         image(32, 32, |x, y| {
             let floor = 0.4 + 0.3 * y as f32 / 31.0 + 0.05 * x as f32 / 31.0;
@@ -454,6 +458,8 @@ mod tests {
                 [0.1, 0.2, 0.9]
             } else if (4..12).contains(&x) && (20..26).contains(&y) {
                 [floor * 0.6; 3]
+            } else if (26..30).contains(&x) && (26..30).contains(&y) {
+                [(floor * 1.4).min(1.0); 3]
             } else if (x, y) == (28, 4) {
                 [0.0, 1.0, 0.0]
             } else {
@@ -485,6 +491,7 @@ mod tests {
         assert_eq!(at(6, 6), 1, "the red square (36 px) is the largest");
         assert_eq!(at(21, 20), 2, "the blue square (24 px)");
         assert_eq!(at(8, 23), UNSURE, "the shadow");
+        assert_eq!(at(27, 27), UNSURE, "a bright spot of the floor");
         assert_eq!(
             at(28, 4),
             UNSURE,
