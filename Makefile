@@ -9,7 +9,7 @@ RELEASE := target/release
 BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender bench tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised bench tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -212,6 +212,58 @@ model-blender: build
 	$(RELEASE)/colf-train plot $(ADAPT_RUN)/blender.safetensors.log.jsonl -o $(ADAPT_RUN)/training.png
 	$(call eval_model,$(ADAPT_RUN),$(ADAPT_RUN)/blender.safetensors)
 	cp $(ADAPT_RUN)/blender.safetensors models/blender.safetensors
+
+# Objects without labels (docs/training.md, "Training without labels"): the default model's
+# recipe from a fresh model, with object proposals computed from the images (--proposals) where
+# the default recipe reads ground-truth masks. The training sets are written without their mask
+# files, so no label can be read; the held-out test scenes keep theirs, for scoring only.
+# Stage u1 (run on so far: see docs/training.md) = the default recipe's stages 1-2 in one run,
+# 54,000 steps on 400 scenes, both mask losses on proposals from the start; u2-u5 follow the
+# default recipe's stages 3-6 (2,000 scenes; uniform rays; shadows; 4 views a scene).
+# Re-running resumes from the checkpoints in $(UNSUP_RUN). Many CPU-hours: run it in the background.
+UNSUP_RUN ?= out/unsup
+UNSUP_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 \
+  --eval-data $(UNSUP_RUN)/data/test --checkpoint-every 250 --keep-every 2000
+UNSUP_LATE := $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train2k --eval-every 2000 --eval-scenes 16
+# $(call unlabelled_set,DIR,SCENES): colf-synth's training scenes without their mask files.
+define unlabelled_set
+	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) -q --force \
+	  && find $(1).tmp -name '*.mask.png' -delete && mv $(1).tmp $(1); }
+endef
+model-unsupervised: build
+	@mkdir -p $(UNSUP_RUN)/data
+	$(call unlabelled_set,$(UNSUP_RUN)/data/train,400)
+	$(call unlabelled_set,$(UNSUP_RUN)/data/train2k,2000)
+	test -d $(UNSUP_RUN)/data/test || $(RELEASE)/colf-synth --out $(UNSUP_RUN)/data/test \
+	  --scenes 100 --split test -q
+	test -f $(UNSUP_RUN)/u2.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train --out $(UNSUP_RUN)/u1.safetensors \
+	  --eval-every 1000 --eval-scenes 8 --object-fraction 0.2 --lr 3e-4 --warmup 500 \
+	  --steps 54000 --decay-from 45000 --final-lr 3e-5 --seed 9 \
+	  $(if $(wildcard $(UNSUP_RUN)/u1.safetensors.ckpt),--resume,--zero-background \
+	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
+	test -f $(UNSUP_RUN)/u3.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(UNSUP_LATE) --out $(UNSUP_RUN)/u2.safetensors --object-fraction 0.2 \
+	  --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 --final-lr 2e-5 --seed 11 \
+	  $(call resume_or_init,$(UNSUP_RUN)/u2.safetensors,$(UNSUP_RUN)/u1.safetensors)
+	test -f $(UNSUP_RUN)/u4.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(UNSUP_LATE) --out $(UNSUP_RUN)/u3.safetensors --object-fraction 0 \
+	  --steps 6000 --lr 5e-5 --warmup 100 --decay-from 3000 --final-lr 1e-5 --seed 12 \
+	  $(call resume_or_init,$(UNSUP_RUN)/u3.safetensors,$(UNSUP_RUN)/u2.safetensors)
+	test -f $(UNSUP_RUN)/u5.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(UNSUP_LATE) --out $(UNSUP_RUN)/u4.safetensors --object-fraction 0 \
+	  --steps 10000 --lr 1e-4 --warmup 100 --decay-from 6000 --final-lr 1e-5 --seed 23 \
+	  $(if $(wildcard $(UNSUP_RUN)/u4.safetensors.ckpt),--resume,--init \
+	  $(UNSUP_RUN)/u3.safetensors --set shadow_head=true --set 'shadow_light=[30,55]')
+	$(RELEASE)/colf-train $(UNSUP_LATE) --out $(UNSUP_RUN)/u5.safetensors --object-fraction 0 \
+	  --views 4 --rays 256 --steps 12000 --lr 5e-5 --warmup 100 --decay-from 4000 \
+	  --final-lr 5e-6 --seed 24 \
+	  $(call resume_or_init,$(UNSUP_RUN)/u5.safetensors,$(UNSUP_RUN)/u4.safetensors)
+	$(RELEASE)/colf-train plot $(UNSUP_RUN)/u1.safetensors.log.jsonl -o $(UNSUP_RUN)/training.png
+	$(RELEASE)/colf-train configure $(UNSUP_RUN)/u5.safetensors \
+	  --set 'inference={"slots":12,"tries":4,"refine":50}' -o $(UNSUP_RUN)/model.safetensors
+	$(call eval_model,$(UNSUP_RUN),$(UNSUP_RUN)/model.safetensors)
+	cp $(UNSUP_RUN)/model.safetensors models/unsupervised.safetensors
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1
