@@ -827,19 +827,35 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     let mut valid = Vec::with_capacity(samples.len() * r);
     for (bi, sample) in samples.iter().enumerate() {
         // Scene-wide ids are matched over all the scene's rays; view-local ones view by view.
-        let block = sample.view_block.unwrap_or(r).max(1);
-        for start in (0..r).step_by(block) {
-            let end = (start + block).min(r);
-            let rays = &weights[(bi * r + start) * s..(bi * r + end) * s];
-            let (i, v) = match_objects(
-                &sample.ids[start..end],
-                rays,
-                s,
-                Some(&sample.near_object[start..end]),
-            );
-            index.extend(i);
-            valid.extend(v);
-        }
+        let block = sample.view_block.unwrap_or(r);
+        let scene = &weights[bi * r * s..(bi + 1) * r * s];
+        let (i, v) = match_in_blocks(&sample.ids, &sample.near_object, scene, s, block);
+        index.extend(i);
+        valid.extend(v);
+    }
+    (index, valid)
+}
+
+/// [`match_objects`] on each run of `block` consecutive elements separately (one view's rays,
+/// when ids are local to each view), ignoring the elements `near` marks.
+fn match_in_blocks(
+    ids: &[u8],
+    near: &[bool],
+    weights: &[f32],
+    s: usize,
+    block: usize,
+) -> (Vec<u32>, Vec<f32>) {
+    let (mut index, mut valid) = (Vec::with_capacity(ids.len()), Vec::with_capacity(ids.len()));
+    for start in (0..ids.len()).step_by(block.max(1)) {
+        let end = (start + block.max(1)).min(ids.len());
+        let (i, v) = match_objects(
+            &ids[start..end],
+            &weights[start * s..end * s],
+            s,
+            Some(&near[start..end]),
+        );
+        index.extend(i);
+        valid.extend(v);
     }
     (index, valid)
 }
@@ -964,10 +980,11 @@ fn ray_metrics(
     let (mut obj_sq, mut obj_n, mut fg_sum) = (0.0f64, 0usize, 0.0f64);
     let (mut aris, mut used) = (Vec::new(), 0usize);
     for (bi, sample) in samples.iter().enumerate() {
-        let mut pred = Vec::new();
-        let mut gt = Vec::new();
-        let mut won = vec![false; s];
+        // FG-ARI per group of rays whose ids share a meaning: the scene for scene-wide ids,
+        // each view for view-local ones (proposals).
         let block = sample.view_block.unwrap_or(r).max(1);
+        let mut groups: Vec<(Vec<u32>, Vec<u32>)> = vec![Default::default(); r.div_ceil(block)];
+        let mut won = vec![false; s];
         for (ri, &id) in sample.ids.iter().enumerate() {
             let at = bi * r + ri;
             let w = &weights[at * s..(at + 1) * s];
@@ -980,14 +997,14 @@ fn ray_metrics(
                 }
                 obj_n += 3;
                 fg_sum += 1.0 - w[0] as f64;
+                let (pred, gt) = &mut groups[ri / block];
                 pred.push(label as u32);
-                // View-local ids (proposals) stay apart from the same id in another view.
-                gt.push((ri / block) as u32 * 256 + id as u32);
+                gt.push(id as u32);
             }
         }
         used += won[1..].iter().filter(|&&x| x).count();
-        if !gt.is_empty() {
-            if let Ok(a) = crate::metrics::ari(&pred, &gt) {
+        for (pred, gt) in groups.iter().filter(|(_, gt)| !gt.is_empty()) {
+            if let Ok(a) = crate::metrics::ari(pred, gt) {
                 aris.push(a);
             }
         }
@@ -1091,6 +1108,30 @@ mod tests {
         // it; with none, nothing is.
         assert_eq!(token_ids(&margin(1), 2).1, vec![true, true, true, false]);
         assert_eq!(token_ids(&margin(0), 2).1, vec![false; 4]);
+    }
+
+    #[test]
+    fn view_local_ids_are_matched_view_by_view() {
+        // Two views of two rays each; id 1 is an object in both, but the model gives view 0's
+        // to slot 1 (field 1) and view 1's to slot 2 (field 2). Fields: background, 2 slots.
+        let ids = [1u8, 0, 1, 0];
+        let near = [false; 4];
+        let weights = [
+            0.1, 0.8, 0.1, /* */ 0.9, 0.05, 0.05, /* */ 0.1, 0.1, 0.8, /* */ 0.9,
+            0.05, 0.05,
+        ];
+        let (by_view, valid) = match_in_blocks(&ids, &near, &weights, 3, 2);
+        assert_eq!(by_view, vec![1, 0, 2, 0]);
+        assert_eq!(valid, vec![1.0; 4]);
+        // Scene-wide, one id is one object: both rays go to one slot.
+        let (scene_wide, _) = match_in_blocks(&ids, &near, &weights, 3, 4);
+        assert_eq!(scene_wide[0], scene_wide[2]);
+        // Unsure proposals are never an object to match, and ignored elements weigh 0.
+        let ids = [UNSURE, 1, 0, 0];
+        let near = [true, false, false, false];
+        let (index, valid) = match_in_blocks(&ids, &near, &weights, 3, 2);
+        assert_eq!((index[0], valid[0]), (0, 0.0));
+        assert_eq!((index[1], valid[1]), (1, 1.0));
     }
 
     #[test]
