@@ -420,6 +420,50 @@ fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
         assert_eq!(values(tensor), values(&b.parameters()[name]), "{name}");
     }
     assert_eq!(info(&on_labelled)["training"][0]["masks_in_data"], false);
+
+    // `colf-train propose` writes the proposals as PNGs and scores them where there are masks.
+    let written = dir.path().join("proposals");
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["propose", "--data"])
+        .arg(&data)
+        .arg("--out")
+        .arg(&written)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["scenes"], 2);
+    assert_eq!(summary["views"], summary["views_with_masks"]);
+    let fg_ari = summary["fg_ari"].as_f64().unwrap();
+    assert!((-1.0..=1.0).contains(&fg_ari), "{summary}");
+    let png = written.join("scene_00000/view_000.proposal.png");
+    let (w, h, _) = colf::image_io::read_labels(png.to_str().unwrap()).unwrap();
+    assert_eq!((w, h), (32, 32));
+    // Without masks there is nothing to score, and the proposals are the same.
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["propose", "--data"])
+        .arg(&unlabelled)
+        .output()
+        .unwrap();
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["views_with_masks"], 0);
+    assert!(summary["fg_ari"].is_null());
+    // A folder that is not a dataset is one error line.
+    let out = Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["propose", "--data"])
+        .arg(dir.path().join("nowhere"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(err.lines().count(), 1, "{err}");
 }
 
 #[test]
