@@ -27,6 +27,12 @@ use std::collections::BTreeMap;
 /// instance borders. Losses built on proposals ignore it.
 pub const UNSURE: u8 = 255;
 
+/// Whether a mask or proposal id names an object to supervise: neither background (0) nor
+/// [`UNSURE`].
+pub fn is_instance(id: u8) -> bool {
+    id != 0 && id != UNSURE
+}
+
 /// The proposal recipe's settings (the defaults were chosen on 25 training scenes of
 /// colf-synth's analytic clevr567 and 25 of its Blender engine, scored against their masks).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -133,9 +139,9 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         }
     }
     if params.ring > 0 {
-        let instance: Vec<bool> = ids.iter().map(|&id| id != 0 && id != UNSURE).collect();
+        let instance: Vec<bool> = ids.iter().map(|&id| is_instance(id)).collect();
         for (p, id) in ids.iter_mut().enumerate() {
-            if *id == 0 && near(&instance, w, h, p, params.ring) {
+            if *id == 0 && any_within(w, h, p, params.ring, |q| instance[q]) {
                 *id = UNSURE;
             }
         }
@@ -173,7 +179,6 @@ pub fn score(ids: &[u8], truth: &[u8]) -> anyhow::Result<ProposalScore> {
     }
     let as_u32 = |v: &[u8]| v.iter().map(|&x| x as u32).collect::<Vec<u32>>();
     let fg_ari = crate::metrics::fg_ari(&as_u32(ids), &as_u32(truth))?;
-    let is_instance = |id: u8| id != 0 && id != UNSURE;
     let (on_pred, on_truth): (Vec<u32>, Vec<u32>) = ids
         .iter()
         .zip(truth)
@@ -428,12 +433,19 @@ fn components_8(
     out
 }
 
-/// Whether some `set` pixel lies within `radius` pixels (Chebyshev) of pixel `p`.
-fn near(set: &[bool], w: usize, h: usize, p: usize, radius: usize) -> bool {
+/// Whether `hit` holds for some pixel within `radius` pixels (Chebyshev distance) of pixel `p`
+/// of a w×h grid, `p` included.
+pub fn any_within(
+    w: usize,
+    h: usize,
+    p: usize,
+    radius: usize,
+    hit: impl Fn(usize) -> bool,
+) -> bool {
     let (x, y) = (p % w, p / w);
     let (x0, x1) = (x.saturating_sub(radius), (x + radius).min(w - 1));
     let (y0, y1) = (y.saturating_sub(radius), (y + radius).min(h - 1));
-    (y0..=y1).any(|yy| set[yy * w + x0..=yy * w + x1].iter().any(|&s| s))
+    (y0..=y1).any(|yy| (x0..=x1).any(|xx| hit(yy * w + xx)))
 }
 
 #[cfg(test)]

@@ -332,20 +332,29 @@ fn refused(data: &Path, dir: &Path, extra: &[&str], needle: &str) {
     assert!(!out.exists());
 }
 
-/// `colf-train info` of a model file, parsed.
-fn info(model: &Path) -> serde_json::Value {
-    let out = Command::cargo_bin("colf-train")
+/// The values of parameter `name` of `model`, flattened.
+fn values(model: &colf::model::Colf, name: &str) -> Vec<f32> {
+    model.parameters()[name]
+        .flatten_all()
         .unwrap()
-        .arg("info")
-        .arg(model)
-        .output()
-        .unwrap();
+        .to_vec1::<f32>()
+        .unwrap()
+}
+
+/// The JSON a `colf-train` command prints on stdout, after checking it succeeded.
+fn json_of(cmd: &mut Command) -> serde_json::Value {
+    let out = cmd.output().unwrap();
     assert!(
         out.status.success(),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
     serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// `colf-train info` of a model file, parsed.
+fn info(model: &Path) -> serde_json::Value {
+    json_of(common::bin("colf-train").arg("info").arg(model))
 }
 
 /// A copy of the training set `data` with every mask file deleted: training never needs one.
@@ -415,28 +424,20 @@ fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
         colf::model::Colf::load(&on_unlabelled).unwrap(),
         colf::model::Colf::load(&on_labelled).unwrap(),
     );
-    for (name, tensor) in a.parameters() {
-        let values = |t: &candle_core::Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        assert_eq!(values(tensor), values(&b.parameters()[name]), "{name}");
+    for name in a.parameters().keys() {
+        assert_eq!(values(&a, name), values(&b, name), "{name}");
     }
     assert_eq!(info(&on_labelled)["training"][0]["masks_in_data"], false);
 
     // `colf-train propose` writes the proposals as PNGs and scores them where there are masks.
     let written = dir.path().join("proposals");
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .args(["propose", "--data"])
-        .arg(&data)
-        .arg("--out")
-        .arg(&written)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let summary = json_of(
+        common::bin("colf-train")
+            .args(["propose", "--data"])
+            .arg(&data)
+            .arg("--out")
+            .arg(&written),
     );
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(summary["scenes"], 2);
     assert_eq!(summary["views"], summary["views_with_masks"]);
     let fg_ari = summary["fg_ari"].as_f64().unwrap();
@@ -444,26 +445,23 @@ fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
     let png = written.join("scene_00000/view_000.proposal.png");
     let (w, h, _) = colf::image_io::read_labels(png.to_str().unwrap()).unwrap();
     assert_eq!((w, h), (32, 32));
-    // Without masks there is nothing to score, and the proposals are the same.
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .args(["propose", "--data"])
-        .arg(&unlabelled)
-        .output()
-        .unwrap();
-    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    // Without masks there is nothing to score.
+    let summary = json_of(
+        common::bin("colf-train")
+            .args(["propose", "--data"])
+            .arg(&unlabelled),
+    );
     assert_eq!(summary["views_with_masks"], 0);
     assert!(summary["fg_ari"].is_null());
     // A folder that is not a dataset is one error line.
-    let out = Command::cargo_bin("colf-train")
-        .unwrap()
-        .args(["propose", "--data"])
-        .arg(dir.path().join("nowhere"))
-        .output()
-        .unwrap();
-    assert_eq!(out.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(err.lines().count(), 1, "{err}");
+    common::fails_with(
+        common::bin("colf-train")
+            .args(["propose", "--data"])
+            .arg(dir.path().join("nowhere")),
+        "train",
+        1,
+        "nowhere",
+    );
 }
 
 #[test]
@@ -524,13 +522,6 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         colf::model::Colf::load(&first).unwrap(),
         colf::model::Colf::load(&frozen).unwrap(),
     );
-    let values = |m: &colf::model::Colf, name: &str| {
-        m.parameters()[name]
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f32>()
-            .unwrap()
-    };
     let (mut kept, mut moved) = (0, 0);
     for name in before.parameters().keys() {
         let same = values(&before, name) == values(&after, name);

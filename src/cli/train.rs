@@ -267,20 +267,19 @@ pub struct ProposeArgs {
 
 /// Runs `colf-train propose`.
 pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
-    use crate::proposals::{propose, score, ProposalParams, UNSURE};
-    let images = crate::dataset::Dataset::open(&args.data)?.without_masks();
-    let masks = crate::dataset::Dataset::open(&args.data)?;
-    let n = args.scenes.map_or(images.len(), |m| m.min(images.len()));
+    use crate::proposals::{is_instance, propose, score, ProposalParams};
+    let data = crate::dataset::Dataset::open(&args.data)?;
+    let n = args.scenes.map_or(data.len(), |m| m.min(data.len()));
     let params = ProposalParams::default();
     let (mut scores, mut views, mut instances) = (Vec::new(), 0usize, 0usize);
     for i in 0..n {
-        let scene = images.load(i)?;
-        let mut proposed = Vec::with_capacity(scene.views.len());
+        let scene = data.load(i)?;
         for view in &scene.views {
+            // Made from the image alone; the mask, where there is one, only scores them.
             let ids = propose(&view.image, &params);
             instances += ids
                 .iter()
-                .filter(|&&id| id != 0 && id != UNSURE)
+                .filter(|&&id| is_instance(id))
                 .max()
                 .copied()
                 .unwrap_or(0) as usize;
@@ -297,13 +296,9 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
                 let png = crate::image_io::encode_png_grey(view.image.w, view.image.h, &ids);
                 crate::io::write_atomic(&dir.join(format!("{stem}.proposal.png")), &png)?;
             }
-            proposed.push(ids);
-        }
-        // Scoring only, after the proposals are made: the masks are read here and nowhere else.
-        for (view, ids) in masks.load(i)?.views.iter().zip(&proposed) {
             if let Some(mask) = &view.mask {
                 let shown = view.path.display();
-                scores.push(score(ids, mask).map_err(|e| anyhow::anyhow!("{shown}: {e}"))?);
+                scores.push(score(&ids, mask).map_err(|e| anyhow::anyhow!("{shown}: {e}"))?);
             }
         }
     }

@@ -3,7 +3,7 @@
 //! known trap: a decoder that only ever reconstructs the view it was given need not learn 3D).
 
 use crate::dataset::SceneData;
-use crate::proposals::UNSURE;
+use crate::proposals::{any_within, is_instance, UNSURE};
 use anyhow::{bail, Result};
 use glam::DVec3;
 use rand::rngs::StdRng;
@@ -82,9 +82,7 @@ pub fn near_object(mask: &[u8], w: usize, h: usize, x: usize, y: usize, margin: 
     if margin == 0 || mask[y * w + x] != 0 {
         return false;
     }
-    let (x0, x1) = (x.saturating_sub(margin), (x + margin).min(w - 1));
-    let (y0, y1) = (y.saturating_sub(margin), (y + margin).min(h - 1));
-    (y0..=y1).any(|yy| mask[yy * w + x0..=yy * w + x1].iter().any(|&id| id != 0))
+    any_within(w, h, y * w + x, margin, |q| mask[q] != 0)
 }
 
 /// One scene's part of a batch.
@@ -158,9 +156,7 @@ pub fn sample_scene(
         let view = &scene.views[v];
         let (w, h) = (view.image.w as usize, view.image.h as usize);
         let object_pixels: Vec<usize> = match (&view.mask, sampling.object_fraction > 0.0) {
-            (Some(mask), true) => (0..w * h)
-                .filter(|&p| mask[p] > 0 && mask[p] != UNSURE)
-                .collect(),
+            (Some(mask), true) => (0..w * h).filter(|&p| is_instance(mask[p])).collect(),
             _ => Vec::new(),
         };
         let n_object = if object_pixels.is_empty() {

@@ -11,7 +11,7 @@ use crate::model::encoder::image_tensor;
 use crate::model::history::{self, TrainingRun};
 use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
 use crate::optim::{Adam, AdamConfig};
-use crate::proposals::{self, ProposalParams, UNSURE};
+use crate::proposals::{self, is_instance, ProposalParams};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{DType, Tensor, D};
@@ -249,11 +249,11 @@ fn load_scenes(path: &Path, max: Option<usize>, proposals: bool) -> Result<Vec<S
         data = data.without_masks();
     }
     let n = max.map_or(data.len(), |m| m.min(data.len()));
+    let params = ProposalParams::default();
     (0..n)
         .map(|i| {
             let mut scene = data.load(i)?;
             if proposals {
-                let params = ProposalParams::default();
                 for view in &mut scene.views {
                     view.mask = Some(proposals::propose(&view.image, &params));
                 }
@@ -845,9 +845,10 @@ fn match_in_blocks(
     s: usize,
     block: usize,
 ) -> (Vec<u32>, Vec<f32>) {
+    let block = block.max(1);
     let (mut index, mut valid) = (Vec::with_capacity(ids.len()), Vec::with_capacity(ids.len()));
-    for start in (0..ids.len()).step_by(block.max(1)) {
-        let end = (start + block.max(1)).min(ids.len());
+    for start in (0..ids.len()).step_by(block) {
+        let end = (start + block).min(ids.len());
         let (i, v) = match_objects(
             &ids[start..end],
             &weights[start * s..end * s],
@@ -872,11 +873,7 @@ fn match_objects(
     ignored: Option<&[bool]>,
 ) -> (Vec<u32>, Vec<f32>) {
     use pathfinding::prelude::{kuhn_munkres, Matrix};
-    let mut objects: Vec<u8> = ids
-        .iter()
-        .copied()
-        .filter(|&id| id > 0 && id != UNSURE)
-        .collect();
+    let mut objects: Vec<u8> = ids.iter().copied().filter(|&id| is_instance(id)).collect();
     objects.sort_unstable();
     objects.dedup();
     let k = s - 1;
@@ -990,7 +987,7 @@ fn ray_metrics(
             let w = &weights[at * s..(at + 1) * s];
             let label = (0..s).fold(0, |best, i| if w[i] > w[best] { i } else { best });
             won[label] = true;
-            if id > 0 && id != UNSURE {
+            if is_instance(id) {
                 for c in 0..3 {
                     let e = (rgb[3 * at + c] - targets[3 * at + c]) as f64;
                     obj_sq += e * e;
@@ -1127,7 +1124,7 @@ mod tests {
         let (scene_wide, _) = match_in_blocks(&ids, &near, &weights, 3, 4);
         assert_eq!(scene_wide[0], scene_wide[2]);
         // Unsure proposals are never an object to match, and ignored elements weigh 0.
-        let ids = [UNSURE, 1, 0, 0];
+        let ids = [crate::proposals::UNSURE, 1, 0, 0];
         let near = [true, false, false, false];
         let (index, valid) = match_in_blocks(&ids, &near, &weights, 3, 2);
         assert_eq!((index[0], valid[0]), (0, 0.0));
