@@ -263,6 +263,36 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
 }
 
 #[test]
+fn a_fixed_background_grows_into_one_that_reads_the_image() {
+    let cfg = Config {
+        zero_background: true,
+        ..tiny()
+    };
+    let fixed = Colf::init(&cfg, 3).unwrap();
+    let following_cfg = cfg
+        .with_overrides(&["zero_background=false".into()])
+        .unwrap();
+    let following = fixed.reconfigured(&following_cfg, 4, "m").unwrap();
+    assert!(!following.config().zero_background);
+    let gap = |a: &[Tensor; 2], b: &[Tensor; 2]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| abs_sum(&(x - y).unwrap()) / abs_sum(x))
+            .fold(0.0f32, f32::max)
+    };
+    // The background latent now comes from slot attention, yet the renders are unchanged...
+    let reference = rendered(&fixed);
+    assert!(gap(&reference, &rendered(&following)) < 1e-6);
+    // ...because the input weights that read it start at zero: with the old ones (never
+    // trained), the same latent changes the background.
+    let unzeroed = fixed.configured(&["zero_background=false".into()]).unwrap();
+    assert!(gap(&reference, &rendered(&unzeroed)) > 1e-3);
+    // Training reaches every parameter, the zeroed weights included.
+    let grads = assert_gradients_reach_every_parameter(following);
+    assert!(grads.iter().any(|(n, _)| n == "hypernet_bg.fc1.weight"));
+}
+
+#[test]
 fn a_shadow_head_starts_faint_and_darkens_only_the_background() {
     shadow_head_checks(&[]);
     shadow_head_checks(&["shadow_light=[30, 55]".into()]);

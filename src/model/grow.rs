@@ -7,6 +7,11 @@
 //!   zero output weights;
 //! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
 //!   biases and zero outgoing weights (in a hypernetwork, the heads' rows that generate them).
+//! - an image-dependent background (`zero_background` turned off): the background
+//!   hypernetwork's input weights (`hypernet_bg.fc1.weight`) are zeroed. They only ever saw the
+//!   zero latent, so they never received a gradient; zeroed, the slot-attention background
+//!   latent changes nothing until training moves them, and it can (their gradient is the
+//!   hidden layer's times the now non-zero latent).
 //! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
 //!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
 //!   growth that changes renders, by that much; see `heads.rs`).
@@ -61,6 +66,14 @@ pub fn grow_tensors(
         out.retain(|k, _| !k.starts_with("hypernet_bg."));
     } else if old.static_background && !cfg.static_background {
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
+    }
+    if old.zero_background && !cfg.zero_background {
+        // (A static background was refused above: it has no hypernetwork to feed.)
+        let key = "hypernet_bg.fc1.weight";
+        if let Some(weight) = out.get(key) {
+            let zeros = weight.zeros_like()?;
+            out.insert(key.to_string(), zeros);
+        }
     }
     if cfg.shadow_head && !old.shadow_head {
         // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).
