@@ -159,7 +159,8 @@ pub struct RunArgs {
     /// docs/model.md, e.g. `--set ray_fourier_freqs=6`). With --init, only settings that keep
     /// every tensor's shape (e.g. `--set default_slots=10`) or that grow the model while keeping
     /// what it computes (`--set static_background=true` on a zero-background model, a larger
-    /// `--set hypernet_hidden=N`; new weights drawn from --seed); ignored with --resume.
+    /// `--set hypernet_hidden=N`, `--set zero_background=false` for a background that reads
+    /// the image; new weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,
 

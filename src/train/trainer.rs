@@ -299,7 +299,7 @@ impl Trainer {
                     } else {
                         let cfg = colf.config().with_overrides(&opts.config_overrides)?;
                         colf.reconfigured(&cfg, opts.seed, &p.display().to_string())
-                            .context("a config change of an initial model may only keep every tensor's shape, turn on static_background or widen hypernet_hidden")?
+                            .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden or lfn_hidden)")?
                     }
                 }
                 None => {
