@@ -162,6 +162,20 @@ fn assert_gradients_reach_every_parameter(colf: Colf) -> Vec<(String, Tensor)> {
     all
 }
 
+/// How far `b` is from `reference`, relative to its size: Σ|reference − b| / Σ|reference|.
+fn relative_gap(reference: &Tensor, b: &Tensor) -> f32 {
+    abs_sum(&(reference - b).unwrap()) / abs_sum(reference)
+}
+
+/// The tiny config with a zero background latent (what `static_background` and an
+/// image-dependent background grow from).
+fn zero_background_tiny() -> Config {
+    Config {
+        zero_background: true,
+        ..tiny()
+    }
+}
+
 fn abs_sum(t: &Tensor) -> f32 {
     t.abs()
         .unwrap()
@@ -173,10 +187,7 @@ fn abs_sum(t: &Tensor) -> f32 {
 
 #[test]
 fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
-    let cfg = Config {
-        zero_background: true,
-        ..tiny()
-    };
+    let cfg = zero_background_tiny();
     let small = Colf::init(&cfg, 3).unwrap();
     let grown_cfg = cfg
         .with_overrides(&[
@@ -197,7 +208,7 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
     let (after, _) = prepared_fields(&grown);
     for (lb, la) in before.layers.iter().zip(&after.layers) {
         for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
-            let gap = abs_sum(&(tb - ta).unwrap()) / abs_sum(tb);
+            let gap = relative_gap(tb, ta);
             assert!(gap < 1e-5, "generated light fields changed: {gap}");
         }
     }
@@ -215,7 +226,7 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
     ] {
         let out = rendered(&wide);
         for (a, b) in reference.iter().zip(&out) {
-            let gap = abs_sum(&(a - b).unwrap()) / abs_sum(a);
+            let gap = relative_gap(a, b);
             assert!(gap < 1e-5, "renders changed: {gap}");
         }
         // (With a zero background latent, `hypernet_bg.fc1.weight` gets no gradient: static
@@ -264,10 +275,7 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
 
 #[test]
 fn a_fixed_background_grows_into_one_that_reads_the_image() {
-    let cfg = Config {
-        zero_background: true,
-        ..tiny()
-    };
+    let cfg = zero_background_tiny();
     let fixed = Colf::init(&cfg, 3).unwrap();
     let following_cfg = cfg
         .with_overrides(&["zero_background=false".into()])
@@ -277,7 +285,7 @@ fn a_fixed_background_grows_into_one_that_reads_the_image() {
     let gap = |a: &[Tensor; 2], b: &[Tensor; 2]| {
         a.iter()
             .zip(b)
-            .map(|(x, y)| abs_sum(&(x - y).unwrap()) / abs_sum(x))
+            .map(|(x, y)| relative_gap(x, y))
             .fold(0.0f32, f32::max)
     };
     // The background latent now comes from slot attention, yet the renders are unchanged...
@@ -311,7 +319,7 @@ fn shadow_head_checks(light: &[String]) {
     let [rgb_plain, weights_plain] = rendered(&plain);
     let [rgb_faint, weights_faint] = rendered(&faint);
     assert_eq!(abs_sum(&(&weights_plain - &weights_faint).unwrap()), 0.0);
-    let gap = abs_sum(&(&rgb_plain - &rgb_faint).unwrap()) / abs_sum(&rgb_plain);
+    let gap = relative_gap(&rgb_plain, &rgb_faint);
     assert!(gap > 0.0 && gap < 1.1e-3, "{gap}");
     // Every parameter trains from the start, the shadow head's zero weights included.
     let grads =
@@ -329,7 +337,7 @@ fn shadow_head_checks(light: &[String]) {
     assert_eq!(abs_sum(&(&weights_plain - &weights_strong).unwrap()), 0.0);
     let brighter = (&rgb_strong - &rgb_plain).unwrap().relu().unwrap();
     assert!(abs_sum(&brighter) < 1e-6, "a shadow brightened a pixel");
-    assert!(abs_sum(&(&rgb_plain - &rgb_strong).unwrap()) / abs_sum(&rgb_plain) > 0.05);
+    assert!(relative_gap(&rgb_plain, &rgb_strong) > 0.05);
     // The shadow goes with its slot: with no foreground slots there is none.
     let (o, d) = camera_rays(DVec3::new(6.0, 2.0, 4.0), 5);
     let bg = vec![0.2f32; cfg.slot_dim];

@@ -69,10 +69,8 @@ pub fn grow_tensors(
     }
     if old.zero_background && !cfg.zero_background {
         // (A static background was refused above: it has no hypernetwork to feed.)
-        let key = "hypernet_bg.fc1.weight";
-        if let Some(weight) = out.get(key) {
-            let zeros = weight.zeros_like()?;
-            out.insert(key.to_string(), zeros);
+        if let Some(weight) = out.get_mut("hypernet_bg.fc1.weight") {
+            *weight = weight.zeros_like()?;
         }
     }
     if cfg.shadow_head && !old.shadow_head {
