@@ -42,6 +42,9 @@ pub struct Adam {
     /// ~15 element-wise passes, each allocating: 10 % of a training step).
     first_moment: Vec<Vec<f32>>,
     second_moment: Vec<Vec<f32>>,
+    /// Each parameter's multiplier of the step's learning rate (1 unless
+    /// [`Adam::scale_learning_rate`] set it).
+    lr_scale: Vec<f64>,
     /// Number of updates taken.
     pub step: u64,
 }
@@ -64,13 +67,34 @@ impl Adam {
             .map(|(_, v)| vec![0.0; v.elem_count()])
             .collect();
         let second_moment = first_moment.clone();
+        let lr_scale = vec![1.0; params.len()];
         Ok(Adam {
             config,
             params,
             first_moment,
             second_moment,
+            lr_scale,
             step: 0,
         })
+    }
+
+    /// Multiplies the learning rate of every parameter whose name starts with `prefix` by
+    /// `factor` (a later call for the same parameter replaces the factor). Adam moves each
+    /// weight by about the learning rate a step whatever its gradient's size, so weights that
+    /// start far from where they must go (a layer grown at zero) need a larger rate, not a
+    /// larger gradient. Returns how many parameters matched.
+    pub fn scale_learning_rate(&mut self, prefix: &str, factor: f64) -> Result<usize> {
+        if !(factor > 0.0 && factor.is_finite()) {
+            bail!("a learning-rate factor must be a positive number (got {factor} for `{prefix}`)");
+        }
+        let mut matched = 0;
+        for ((name, _), scale) in self.params.iter().zip(self.lr_scale.iter_mut()) {
+            if name.starts_with(prefix) {
+                *scale = factor;
+                matched += 1;
+            }
+        }
+        Ok(matched)
     }
 
     /// Parameter names, in state order.
@@ -107,12 +131,13 @@ impl Adam {
         self.step += 1;
         let t = self.step as i32;
         let (beta1, beta2) = (c.beta1 as f32, c.beta2 as f32);
-        let step_size = (lr / (1.0 - c.beta1.powi(t))) as f32;
+        let step_size = lr / (1.0 - c.beta1.powi(t));
         let inv_bias2 = (1.0 / (1.0 - c.beta2.powi(t))) as f32;
         let eps = c.eps as f32;
         for (i, g) in grads.into_iter().enumerate() {
             let Some(g) = g else { continue };
             let var = &self.params[i].1;
+            let step_size = (step_size * self.lr_scale[i]) as f32;
             let mut w = var.as_tensor().flatten_all()?.to_vec1::<f32>()?;
             let (m, v) = (&mut self.first_moment[i], &mut self.second_moment[i]);
             for (((w, m), v), g) in w.iter_mut().zip(m.iter_mut()).zip(v.iter_mut()).zip(&g) {
@@ -249,6 +274,36 @@ mod tests {
             w.as_tensor().to_vec1().unwrap()
         };
         assert_eq!(run(None), run(Some(7)));
+    }
+
+    #[test]
+    fn a_learning_rate_factor_scales_only_its_parameters_steps() {
+        let start = vec![5.0f32, -5.0];
+        let fast = Var::from_vec(start.clone(), 2, &Device::Cpu).unwrap();
+        let slow = Var::from_vec(start.clone(), 2, &Device::Cpu).unwrap();
+        let mut adam = Adam::new(
+            vec![("bg.w".into(), fast.clone()), ("fg.w".into(), slow.clone())],
+            AdamConfig::default(),
+        )
+        .unwrap();
+        assert_eq!(adam.scale_learning_rate("bg.", 4.0).unwrap(), 1);
+        assert_eq!(adam.scale_learning_rate("nothing.", 2.0).unwrap(), 0);
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(adam.scale_learning_rate("bg.", bad).is_err(), "{bad}");
+        }
+        let loss = (quadratic_loss(&fast) + quadratic_loss(&slow)).unwrap();
+        adam.step(&loss.backward().unwrap(), 0.01).unwrap();
+        // Adam's first step is the learning rate times the gradient's sign, per weight.
+        let moved = |v: &Var| -> Vec<f32> {
+            let now = v.as_tensor().to_vec1::<f32>().unwrap();
+            now.iter().zip(&start).map(|(a, b)| (a - b).abs()).collect()
+        };
+        for (f, s) in moved(&fast).into_iter().zip(moved(&slow)) {
+            assert!(
+                (s - 0.01).abs() < 1e-5 && (f - 0.04).abs() < 1e-5,
+                "{f} {s}"
+            );
+        }
     }
 
     #[test]

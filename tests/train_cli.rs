@@ -541,6 +541,52 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         "`enc0der.`",
     );
 
+    // --lr-scale is recorded; a prefix that names no trained parameter (here a frozen one)
+    // is refused, and a factor that is not a positive number is a usage error.
+    let scaled = dir.path().join("scaled.safetensors");
+    train(
+        &unlabelled,
+        &scaled,
+        2,
+        &[
+            "--init",
+            first.to_str().unwrap(),
+            "--lr-scale",
+            "slot_attention.=4",
+        ],
+    );
+    assert_eq!(
+        info(&scaled)["training"][1]["lr_scale"]["slot_attention."],
+        4.0
+    );
+    assert!(info(&frozen)["training"][1].get("lr_scale").is_none());
+    refused(
+        &unlabelled,
+        dir.path(),
+        &["--freeze", "encoder.", "--lr-scale", "encoder.=2"],
+        "`encoder.` (to scale its learning rate)",
+    );
+    for bad in [
+        "encoder.=0",
+        "encoder.=-1",
+        "encoder.=nan",
+        "encoder.",
+        "=2",
+    ] {
+        common::fails_with(
+            Command::cargo_bin("colf-train")
+                .unwrap()
+                .arg("--data")
+                .arg(&unlabelled)
+                .arg("--out")
+                .arg(dir.path().join("bad.safetensors"))
+                .args(["--lr-scale", bad]),
+            "train",
+            2,
+            "lr-scale",
+        );
+    }
+
     // The bundled default model predates the records; a file that is not a model is one error.
     let default = info(
         Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -200,6 +200,14 @@ pub struct RunArgs {
     #[arg(long, value_name = "PREFIX")]
     pub freeze: Vec<String>,
 
+    /// Train the parameters whose names start with PREFIX at FACTOR times the learning rate
+    /// (repeatable; a later one wins where prefixes overlap). Adam moves a weight by about the
+    /// learning rate a step, so a layer that must travel far, such as the background's input
+    /// weights grown at zero by `--set zero_background=false`, needs a larger factor:
+    /// e.g. `--lr-scale hypernet_bg.fc1.=20`.
+    #[arg(long, value_name = "PREFIX=FACTOR", value_parser = parse_lr_scale)]
+    pub lr_scale: Vec<(String, f64)>,
+
     /// Abort after this many steps with a non-finite loss or gradient.
     #[arg(long, default_value_t = 50, value_name = "N")]
     pub max_bad_steps: u64,
@@ -511,8 +519,22 @@ impl RunArgs {
             max_bad_steps: args.max_bad_steps,
             max_scenes: args.max_scenes,
             freeze: args.freeze.clone(),
+            lr_scale: args.lr_scale.clone(),
             proposals: args.proposals,
         })
+    }
+}
+
+/// `--lr-scale PREFIX=FACTOR`: the factor must be a positive, finite number.
+fn parse_lr_scale(text: &str) -> Result<(String, f64), String> {
+    let (prefix, factor) = text
+        .rsplit_once('=')
+        .ok_or_else(|| format!("`{text}` is not PREFIX=FACTOR"))?;
+    match factor.trim().parse::<f64>() {
+        Ok(f) if f > 0.0 && f.is_finite() && !prefix.is_empty() => Ok((prefix.to_string(), f)),
+        _ => Err(format!(
+            "`{text}`: PREFIX=FACTOR needs a parameter-name prefix and a positive factor"
+        )),
     }
 }
 

@@ -116,6 +116,10 @@ pub struct TrainOptions {
     /// `slot_attention.`, to adapt the decoder to a new look while keeping how slots group).
     #[serde(default)]
     pub freeze: Vec<String>,
+    /// (prefix, factor): parameters whose names start with the prefix learn at `factor` times
+    /// the schedule's rate (a later pair wins where prefixes overlap).
+    #[serde(default)]
+    pub lr_scale: Vec<(String, f64)>,
 }
 
 impl TrainOptions {
@@ -338,6 +342,14 @@ impl Trainer {
             .filter(|(n, _)| !opts.freeze.iter().any(|p| n.starts_with(p.as_str())))
             .collect();
         let mut adam = Adam::new(trained, AdamConfig::default())?;
+        for (prefix, factor) in &opts.lr_scale {
+            if adam.scale_learning_rate(prefix, *factor)? == 0 {
+                bail!(
+                    "no trained parameter of the model has a name starting with `{prefix}` \
+                     (to scale its learning rate)"
+                );
+            }
+        }
         if let Some(bytes) = adam_state {
             let file = TensorFile::parse(&bytes, "checkpoint")?;
             adam.load_state_tensors(&file, "adam/", step)?;
@@ -784,6 +796,7 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         init,
         config_overrides: opts.config_overrides.clone(),
         frozen: opts.freeze.clone(),
+        lr_scale: opts.lr_scale.iter().cloned().collect(),
         steps: 0,
         planned_steps: opts.steps,
         batch: opts.batch_scenes,
