@@ -544,17 +544,25 @@ fn progress_text(line: &serde_json::Value) -> String {
     if let Some(eval) = line.get("eval") {
         return format!("eval @ {step}: {eval}");
     }
-    let f = |key: &str| line[key].as_f64().unwrap_or(f64::NAN);
-    format!(
-        "loss {:.5} psnr {:.2} obj {:.2} fg {:.3} fg-ari {:.3} slots {:.1} {:.0} rays/s",
-        f("loss"),
-        f("psnr"),
-        f("obj_psnr"),
-        f("fg_share"),
-        f("fg_ari"),
-        f("slots_used"),
-        f("rays_per_s"),
-    )
+    // Figures a run cannot measure (those on object rays, without masks or proposals) are
+    // null in the log and left out here, rather than printed as NaN.
+    let mut text = String::new();
+    for (label, key, decimals) in [
+        ("loss", "loss", 5),
+        ("psnr", "psnr", 2),
+        ("obj", "obj_psnr", 2),
+        ("fg", "fg_share", 3),
+        ("fg-ari", "fg_ari", 3),
+        ("slots", "slots_used", 1),
+    ] {
+        if let Some(v) = line[key].as_f64() {
+            text += &format!("{label} {v:.decimals$} ");
+        }
+    }
+    match line["rays_per_s"].as_f64() {
+        Some(v) => text + &format!("{v:.0} rays/s"),
+        None => text.trim_end().to_string(),
+    }
 }
 
 pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
@@ -637,5 +645,28 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     match crate::io::pending_signal() {
         Some(interrupted) => Err(interrupted.into()),
         None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn progress_lines_leave_out_what_a_run_cannot_measure() {
+        let full = serde_json::json!({"step": 3, "loss": 0.5, "psnr": 20.0, "obj_psnr": 15.0,
+            "fg_share": 0.9, "fg_ari": 0.8, "slots_used": 6.5, "rays_per_s": 1000.4});
+        assert_eq!(
+            progress_text(&full),
+            "loss 0.50000 psnr 20.00 obj 15.00 fg 0.900 fg-ari 0.800 slots 6.5 1000 rays/s"
+        );
+        let unlabelled = serde_json::json!({"step": 3, "loss": 0.5, "psnr": 20.0,
+            "obj_psnr": null, "fg_share": null, "fg_ari": null, "slots_used": 7.0,
+            "rays_per_s": 1000.0});
+        assert_eq!(
+            progress_text(&unlabelled),
+            "loss 0.50000 psnr 20.00 slots 7.0 1000 rays/s"
+        );
+        assert!(!progress_text(&unlabelled).contains("NaN"));
     }
 }
