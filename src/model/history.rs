@@ -50,9 +50,10 @@ pub struct TrainingRun {
     /// Prefixes of the parameters the run kept fixed (`--freeze`).
     #[serde(default)]
     pub frozen: Vec<String>,
-    /// Learning-rate factors by parameter-name prefix (`--lr-scale`); not written when empty.
-    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
-    pub lr_scale: BTreeMap<String, f64>,
+    /// Learning-rate factors as (parameter-name prefix, factor) in the order applied, a later
+    /// one winning where prefixes overlap (`--lr-scale`); not written when empty.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lr_scale: Vec<(String, f64)>,
     /// Optimisation steps the model file has had from this run: the run started at step 0.
     pub steps: u64,
     /// The run's planned total (`--steps`).
@@ -137,7 +138,7 @@ mod tests {
             preset: None,
             config_overrides: vec![],
             frozen: vec!["encoder.".into()],
-            lr_scale: BTreeMap::from([("hypernet_bg.fc1.".into(), 20.0)]),
+            lr_scale: vec![("hypernet_bg.fc1.".into(), 20.0)],
             steps: 10,
             planned_steps: 20,
             batch: 4,
@@ -170,7 +171,7 @@ mod tests {
         assert_eq!(masks_used(&[]), None);
         // A run without learning-rate factors is written as before they existed.
         let plain = TrainingRun {
-            lr_scale: BTreeMap::new(),
+            lr_scale: vec![],
             ..run()
         };
         assert!(!to_json(&[plain]).contains("lr_scale"));

@@ -796,7 +796,7 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         init,
         config_overrides: opts.config_overrides.clone(),
         frozen: opts.freeze.clone(),
-        lr_scale: opts.lr_scale.iter().cloned().collect(),
+        lr_scale: opts.lr_scale.clone(),
         steps: 0,
         planned_steps: opts.steps,
         batch: opts.batch_scenes,
