@@ -309,18 +309,29 @@ fn refined_encoding_fits_the_input_view_and_is_deterministic() {
     let dir = tempfile::tempdir().unwrap();
     let scene = scene(dir.path());
     let encode_refined = |out: &Path, extra: &[&str]| encode_output(&scene, out, extra);
-    // The model's default slots and tries, without refinement.
+    // The model's default slots and tries, without refinement. Every slot is kept
+    // (`--redundant 0`), so the three encodings can be compared slot by slot.
     let plain = dir.path().join("plain.codes");
-    let run = encode_refined(&plain, &["--refine", "0"]);
+    let run = encode_refined(&plain, &["--refine", "0", "--redundant", "0"]);
     assert!(run.status.success(), "{run:?}");
     let (a, b) = (dir.path().join("a.codes"), dir.path().join("b.codes"));
     for out in [&a, &b] {
-        let run = encode_refined(out, &["--refine", "10"]);
+        let run = encode_refined(out, &["--refine", "10", "--redundant", "0"]);
         assert!(run.status.success(), "{run:?}");
     }
     assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
     let fixed_frames = dir.path().join("fixed.codes");
-    let run = encode_refined(&fixed_frames, &["--refine", "10", "--refine-frame-lr", "0"]);
+    let run = encode_refined(
+        &fixed_frames,
+        &[
+            "--refine",
+            "10",
+            "--refine-frame-lr",
+            "0",
+            "--redundant",
+            "0",
+        ],
+    );
     assert!(run.status.success(), "{run:?}");
     let read = |p: &Path| Codes::read(p.to_str().unwrap()).unwrap();
     let (plain_codes, refined, fixed) = (read(&plain), read(&a), read(&fixed_frames));

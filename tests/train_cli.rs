@@ -587,13 +587,19 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         );
     }
 
-    // The bundled default model predates the records; a file that is not a model is one error.
-    let default = info(
-        Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("models/default.safetensors")
-            .as_path(),
-    );
-    assert!(default["training"].is_null() && default["masks_used"].is_null());
+    // The bundled default model was trained without labels, and says so run by run; the
+    // `supervised` model predates the records. A file that is not a model is one error.
+    let models = Path::new(env!("CARGO_MANIFEST_DIR")).join("models");
+    let default = info(&models.join("default.safetensors"));
+    assert_eq!(default["masks_used"], false);
+    let runs = default["training"].as_array().unwrap();
+    assert!(runs.len() >= 2, "{default}");
+    for run in runs {
+        assert_eq!(run["masks_in_data"], false, "{run}");
+        assert_eq!(run["proposals"], true, "{run}");
+    }
+    let supervised = info(&models.join("supervised.safetensors"));
+    assert!(supervised["training"].is_null() && supervised["masks_used"].is_null());
     let junk = dir.path().join("junk.safetensors");
     std::fs::write(&junk, b"not a model").unwrap();
     let out = Command::cargo_bin("colf-train")

@@ -35,7 +35,7 @@ sometimes gives one object two slots that draw it alike; keeping one means an ed
 or deletes it moves or deletes all of it. --redundant 0 keeps every slot.\n\n\
 Unset, --slots, --tries and --refine take the model's default encoding (its config's \
 `inference`, written by colf-train configure; a model without one is encoded in one pass with \
-its training slot count). The bundled model's is 12 slots, 4 tries and 50 refinement steps: the \
+its training slot count). The bundled models' is 12 slots, 4 tries and 50 refinement steps: the \
 most accurate encoding measured (README, \"Refinement\": about 4 s of CPU an image at 64²). \
 --fast is the one-pass encoding (the model's training slot count, about 0.1 s an image), for \
 when speed matters more.\n\n\
@@ -72,7 +72,7 @@ pub struct EncodeArgs {
     #[command(flatten)]
     pub fit: crate::cli::FitArgs,
 
-    /// Model file, or a bundled model's name (`default`, `blender`); default: $COLF_MODEL, else
+    /// Model file, or a bundled model's name (`default`, `supervised`, `blender`); default: $COLF_MODEL, else
     /// the bundled default model.
     #[arg(long, value_name = "M")]
     pub model: Option<String>,

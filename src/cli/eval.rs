@@ -63,7 +63,7 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR")]
     pub data: Option<std::path::PathBuf>,
 
-    /// Model file, or a bundled model's name (`default`, `blender`); default: $COLF_MODEL, else
+    /// Model file, or a bundled model's name (`default`, `supervised`, `blender`); default: $COLF_MODEL, else
     /// the bundled default model.
     #[arg(long, value_name = "M", requires = "data")]
     pub model: Option<String>,

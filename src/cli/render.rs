@@ -70,7 +70,7 @@ pub struct RenderArgs {
     #[arg(long, value_name = "A..B", value_parser = crate::render::FrameSelection::parse)]
     pub frames: Option<crate::render::FrameSelection>,
 
-    /// Model file, or a bundled model's name (`default`, `blender`); default: $COLF_MODEL, else
+    /// Model file, or a bundled model's name (`default`, `supervised`, `blender`); default: $COLF_MODEL, else
     /// the bundled default model.
     #[arg(long, value_name = "M")]
     pub model: Option<String>,

@@ -26,7 +26,7 @@ step appends a JSON line to OUT.log.jsonl: step, loss, mse, psnr, obj_psnr (rays
 fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s; \
 evaluations on --eval-data add lines with an \"eval\" object. A step with a non-finite loss or \
 gradient is skipped and counted; more than --max-bad-steps abort the run.",
-    after_help = "Examples:\n  colf-train init --preset small --seed 0 -o models/default.safetensors\n  \
+    after_help = "Examples:\n  colf-train init --preset small --seed 0 -o init.safetensors\n  \
 colf-train init --preset paper -o paper-init.safetensors\n  \
 colf-train --data data/train --eval-data data/test --out model.safetensors --steps 20000\n  \
 colf-train --data data/train --out model.safetensors --steps 40000 --resume"
@@ -52,7 +52,7 @@ pub struct RunArgs {
     #[arg(long, value_name = "MODEL", required = true)]
     pub out: Option<std::path::PathBuf>,
 
-    /// Start from this model, a file or a bundled model's name (`default`, `blender`): a
+    /// Start from this model, a file or a bundled model's name (`default`, `supervised`, `blender`): a
     /// curriculum (e.g. clevr567, then harder scenes), or a model that already separates
     /// objects fine-tuned on your own scenes.
     #[arg(long, value_name = "MODEL", conflicts_with = "resume")]
@@ -243,8 +243,8 @@ the scenes, whether the data had masks (`masks_in_data`) and whether a loss or t
 used them (`masks_used`), the model it started from, the steps, the batch, the learning-rate \
 schedule and the loss weights. `masks_used` (top level) is true if any run used masks, false if \
 none did, and null, as is `training`, for a model whose file does not record its training (files \
-written before colf-train recorded it, such as the bundled default model, which was trained with \
-masks: docs/training.md).",
+written before colf-train recorded it, such as the bundled `supervised` model, which was \
+trained with masks: docs/training.md).",
     after_help = "Examples:\n  colf-train info model.safetensors\n  colf-train info model.safetensors | jq '.training[] | {data, steps, masks_used}'"
 )]
 pub struct InfoArgs {
