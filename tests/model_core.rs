@@ -301,6 +301,81 @@ fn a_fixed_background_grows_into_one_that_reads_the_image() {
 }
 
 #[test]
+fn a_background_reader_grows_on_a_fixed_background_and_follows_the_image() {
+    let cfg = zero_background_tiny();
+    let fixed = Colf::init(&cfg, 3).unwrap();
+    let reader_cfg = cfg
+        .with_overrides(&[
+            "zero_background=false".into(),
+            "background_reader=true".into(),
+        ])
+        .unwrap();
+    let reading = fixed.reconfigured(&reader_cfg, 4, "m").unwrap();
+    assert!(reading.config().background_reader);
+    // Grown, it renders as the fixed background did (the reader's latent meets zeroed input
+    // weights)...
+    let [rgb_fixed, weights_fixed] = rendered(&fixed);
+    let [rgb_reading, weights_reading] = rendered(&reading);
+    assert!(relative_gap(&rgb_fixed, &rgb_reading) < 1e-6);
+    assert!(relative_gap(&weights_fixed, &weights_reading) < 1e-6);
+    // ...but its background latent is read from the image: a darker image gives another one.
+    let side = cfg.encoder_size;
+    let image: Vec<f32> = (0..side * side * 3)
+        .map(|i| 0.2 + 0.6 * ((i * 37 % 101) as f32 / 101.0))
+        .collect();
+    let darker: Vec<f32> = image.iter().map(|v| v * 0.5).collect();
+    let a = reading.encode(&image, side, side, 3, 1).unwrap();
+    let b = reading.encode(&darker, side, side, 3, 1).unwrap();
+    let moved = a
+        .bg_latent
+        .iter()
+        .zip(&b.bg_latent)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(moved > 1e-3, "{moved}");
+    // The reader's gradient passes through the zeroed input weights, so it flows once the first
+    // step has moved them (the first step's gradient of those weights is the hidden layer's
+    // times the reader's latent); then training reaches every parameter.
+    let fc1 = reading.parameters()["hypernet_bg.fc1.weight"].clone();
+    let stepped = reading
+        .with_tensor(
+            "hypernet_bg.fc1.weight",
+            Tensor::randn(0f32, 1e-3, fc1.shape(), &Device::Cpu).unwrap(),
+        )
+        .unwrap();
+    let grads = assert_gradients_reach_every_parameter(stepped);
+    for name in ["background_reader.proj.weight", "hypernet_bg.fc1.weight"] {
+        assert!(grads.iter().any(|(n, _)| n == name), "{name}");
+    }
+    // It grows only where the renders start unchanged, and is never removed.
+    let following = fixed
+        .reconfigured(
+            &cfg.with_overrides(&["zero_background=false".into()])
+                .unwrap(),
+            4,
+            "f",
+        )
+        .unwrap();
+    let err = following
+        .reconfigured(&reader_cfg, 4, "f.safetensors")
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("zero background"), "{err}");
+    let grown = fixed.reconfigured(&reader_cfg, 4, "m").unwrap();
+    let back = reader_cfg
+        .with_overrides(&["background_reader=false".into()])
+        .unwrap();
+    let err = grown.reconfigured(&back, 4, "g.safetensors").err().unwrap();
+    assert!(err.to_string().contains("cannot be removed"), "{err}");
+    // And it needs an image-dependent background.
+    let err = cfg
+        .with_overrides(&["background_reader=true".into()])
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("zero_background"), "{err}");
+}
+
+#[test]
 fn a_shadow_head_starts_faint_and_darkens_only_the_background() {
     shadow_head_checks(&[]);
     shadow_head_checks(&["shadow_light=[30, 55]".into()]);

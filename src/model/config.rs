@@ -68,6 +68,15 @@ pub struct Config {
     /// decoder within the same file size). Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub static_background: bool,
+    /// The background latent is read from the whole image — the mean of the encoder's tokens,
+    /// layer-normalised and projected to the slot size (`background_reader.`) — instead of
+    /// taken from slot attention's background slot, which still competes for the pixels.
+    /// Slot attention trained with a zero background never learns to put what differs between
+    /// images into that slot; the mean of the features always carries the floor's brightness
+    /// and the light, so the background can follow a scene's look. Needs an image-dependent
+    /// background (`zero_background` off). Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub background_reader: bool,
     /// Divide each slot latent by its root-mean-square before the hypernetworks, so the scale
     /// of the generated light-field weights does not follow the scale of the latent (slot
     /// latents reach norms of ~20 and vary between scenes; without this, training was spiky).
@@ -248,6 +257,7 @@ impl Config {
             scene_scale: 8.0,
             zero_background: false,
             static_background: false,
+            background_reader: false,
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
@@ -398,6 +408,9 @@ impl Config {
         }
         if self.static_background && !self.zero_background {
             bail!("model config: `static_background` needs `zero_background` (an image-dependent background needs its hypernetwork)");
+        }
+        if self.background_reader && (self.zero_background || self.is_volumetric()) {
+            bail!("model config: `background_reader` needs a light-field model with an image-dependent background (`zero_background` off)");
         }
         if let Some([azimuth, elevation]) = self.shadow_light {
             if !self.shadow_head {

@@ -12,6 +12,11 @@
 //!   zero latent, so they never received a gradient; zeroed, the slot-attention background
 //!   latent changes nothing until training moves them, and it can (their gradient is the
 //!   hidden layer's times the now non-zero latent).
+//! - a background reader (`background_reader`, on a zero-background model whose background
+//!   becomes image-dependent in the same step): fresh `background_reader.` weights, and the
+//!   background hypernetwork's input weights zeroed as above, so the renders start exactly as
+//!   the zero-latent model's and the gradient of those input weights is the hidden layer's times
+//!   the reader's latent, which differs from image to image.
 //! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
 //!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
 //!   growth that changes renders, by that much; see `heads.rs`).
@@ -72,6 +77,19 @@ pub fn grow_tensors(
         if let Some(weight) = out.get_mut("hypernet_bg.fc1.weight") {
             *weight = weight.zeros_like()?;
         }
+    }
+    if cfg.background_reader && !old.background_reader {
+        if !old.zero_background {
+            bail!("{name}: a background reader grows only on a model trained with a zero background latent (its renders then start unchanged)");
+        }
+        let fresh = super::Colf::init(cfg, seed)?;
+        for (key, tensor) in fresh.parameters() {
+            if key.starts_with("background_reader.") {
+                out.insert(key.clone(), tensor.clone());
+            }
+        }
+    } else if old.background_reader && !cfg.background_reader {
+        bail!("{name}: a model's background reader cannot be removed");
     }
     if cfg.shadow_head && !old.shadow_head {
         // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).

@@ -8,6 +8,7 @@
 //!   [`Colf::encode`] an image into slot latents, [`Colf::prepare`] slots (hypernetworks run
 //!   once per slot) and [`Colf::render_rays`] any number of world rays in bounded-memory chunks.
 
+pub mod background_reader;
 pub mod checkpoint;
 pub mod compositor;
 pub mod config;

@@ -7,7 +7,8 @@ use candle_core::Tensor;
 use candle_nn::VarBuilder;
 use rand::rngs::StdRng;
 
-/// The differentiable model. Parameters live under `encoder.`, `slot_attention.` and the
+/// The differentiable model. Parameters live under `encoder.`, `slot_attention.`
+/// (`background_reader.` with `Config::background_reader`) and the
 /// decoder's prefixes: `hypernet_fg.`, `hypernet_bg.` (or `background_field.`), `heads.` and
 /// `compositor.` for light
 /// fields, `volumetric.` for the volumetric baseline (`Config::volumetric`).
@@ -16,6 +17,8 @@ pub struct ColfNet {
     pub cfg: Config,
     pub encoder: encoder::Encoder,
     pub slot_attention: slot_attention::SlotAttention,
+    /// With `Config::background_reader`: where the background latent comes from.
+    pub background_reader: Option<background_reader::BackgroundReader>,
     pub decoder: Decoder,
 }
 
@@ -72,6 +75,15 @@ impl ColfNet {
     pub fn new(cfg: &Config, vb: VarBuilder) -> candle_core::Result<ColfNet> {
         let encoder = encoder::Encoder::new(cfg, vb.pp("encoder"))?;
         let slot_attention = slot_attention::SlotAttention::new(cfg, vb.pp("slot_attention"))?;
+        let background_reader = if cfg.background_reader {
+            Some(background_reader::BackgroundReader::new(
+                cfg,
+                cfg.feature_dim,
+                vb.pp("background_reader"),
+            )?)
+        } else {
+            None
+        };
         let decoder = if cfg.is_volumetric() {
             Decoder::Volumetric(Box::new(volumetric::Volumetric::new(
                 cfg,
@@ -89,6 +101,7 @@ impl ColfNet {
             cfg: cfg.clone(),
             encoder,
             slot_attention,
+            background_reader,
             decoder,
         })
     }
@@ -129,6 +142,8 @@ impl ColfNet {
         let mut out = self.slot_attention.forward(&tokens, k, rng)?;
         if self.cfg.zero_background {
             out.bg = out.bg.zeros_like()?;
+        } else if let Some(reader) = &self.background_reader {
+            out.bg = reader.forward(&tokens)?;
         }
         Ok(out)
     }
