@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised bench tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both bench tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -274,6 +274,39 @@ model-unsupervised: build
 	  --set 'inference={"slots":12,"tries":4,"refine":50}' -o $(UNSUP_RUN)/model.safetensors
 	$(call eval_model,$(UNSUP_RUN),$(UNSUP_RUN)/model.safetensors)
 	cp $(UNSUP_RUN)/model.safetensors models/default.safetensors
+
+# One model for both looks, without labels (docs/training.md, run r2; not yet bundled): the
+# default model of `make model-unsupervised` ($(UNSUP_RUN)/model.safetensors) grows a background
+# that reads the image (--set background_reader=true) and trains on 600 Blender scenes, 600 of
+# its own analytic ones and 400 with a randomised look, all without mask files; object
+# proposals feed the attention mask loss, as in u5. Writes $(BOTH_RUN)/model.safetensors and
+# scores it on the analytic and the Blender (128²) test scenes. Needs Blender; re-running resumes.
+BOTH_RUN ?= out/both
+model-both: build
+	test -f $(UNSUP_RUN)/model.safetensors || { echo "model-both: run make model-unsupervised first" >&2; exit 1; }
+	@mkdir -p $(BOTH_RUN)/data
+	test -d $(BOTH_RUN)/data/blender || $(RELEASE)/colf-synth --engine blender \
+	  --out $(BOTH_RUN)/data/blender --scenes 600 -q
+	test -d $(BOTH_RUN)/data/randomised || $(RELEASE)/colf-synth --randomize-look \
+	  --out $(BOTH_RUN)/data/randomised --scenes 400 --seed 51 -q
+	test -d $(BOTH_RUN)/data/val || $(RELEASE)/colf-synth --engine blender \
+	  --out $(BOTH_RUN)/data/val --scenes 32 --seed 7 -q
+	test -d $(BOTH_RUN)/data/test128 || $(RELEASE)/colf-synth --engine blender \
+	  --out $(BOTH_RUN)/data/test128 --scenes 100 --split test --size 128 -q
+	test -d $(BOTH_RUN)/data/mix || scripts/mix_scenes.sh $(BOTH_RUN)/data/mix \
+	  b:$(BOTH_RUN)/data/blender:600 a:$(UNSUP_RUN)/data/train2k:600 r:$(BOTH_RUN)/data/randomised:400
+	$(RELEASE)/colf-train --data $(BOTH_RUN)/data/mix --out $(BOTH_RUN)/model.safetensors \
+	  --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
+	  --views 4 --rays 256 --steps 5000 --lr 5e-5 --warmup 100 --decay-from 2500 --final-lr 5e-6 \
+	  --seed 61 --eval-data $(BOTH_RUN)/data/val --eval-every 1000 --eval-scenes 16 \
+	  --checkpoint-every 250 --keep-every 1000 \
+	  --lr-scale background_reader.=10 --lr-scale hypernet_bg.fc1.=10 \
+	  $(if $(wildcard $(BOTH_RUN)/model.safetensors.ckpt),--resume,--init $(UNSUP_RUN)/model.safetensors \
+	  --set zero_background=false --set background_reader=true)
+	$(RELEASE)/colf-eval --data $(UNSUP_RUN)/data/test --model $(BOTH_RUN)/model.safetensors \
+	  > $(BOTH_RUN)/analytic64.json.tmp && mv $(BOTH_RUN)/analytic64.json.tmp $(BOTH_RUN)/analytic64.json
+	$(RELEASE)/colf-eval --data $(BOTH_RUN)/data/test128 --model $(BOTH_RUN)/model.safetensors \
+	  > $(BOTH_RUN)/blender128.json.tmp && mv $(BOTH_RUN)/blender128.json.tmp $(BOTH_RUN)/blender128.json
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1
