@@ -5,8 +5,8 @@
 //! an image-dependent one, its slot-attention background latent barely varies between images
 //! (measured on the `blender` adaptation: norm 133, 0.42 per dimension across scenes), so the
 //! background still cannot follow a scene's floor or light. The mean of the encoder's tokens
-//! always carries them. Tensor names (prefix `background_reader.`): `norm.{weight,bias}` [C]
-//! and `proj.{weight,bias}` ([D, C], [D]), C = the encoder's feature size, D = `slot_dim`.
+//! always carries them. Tensor names (prefix `background_reader.`): `proj.{weight,bias}`
+//! ([D, C], [D]), C = `feature_dim` (the encoder's token size), D = `slot_dim`.
 
 use super::Config;
 use candle_core::{Module, Result, Tensor};
@@ -22,10 +22,9 @@ pub struct BackgroundReader {
 }
 
 impl BackgroundReader {
-    /// `feature_dim` is the encoder's token size.
-    pub fn new(cfg: &Config, feature_dim: usize, vb: VarBuilder) -> Result<BackgroundReader> {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<BackgroundReader> {
         Ok(BackgroundReader {
-            proj: linear(feature_dim, cfg.slot_dim, vb.pp("proj"))?,
+            proj: linear(cfg.feature_dim, cfg.slot_dim, vb.pp("proj"))?,
         })
     }
 
@@ -54,8 +53,11 @@ mod tests {
     fn reads_the_mean_token_whatever_the_order_and_count() {
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let cfg = Config::small();
-        let reader = BackgroundReader::new(&cfg, 8, vb.pp("background_reader")).unwrap();
+        let cfg = Config {
+            feature_dim: 8,
+            ..Config::small()
+        };
+        let reader = BackgroundReader::new(&cfg, vb.pp("background_reader")).unwrap();
         let mut names: Vec<String> = varmap.data().lock().unwrap().keys().cloned().collect();
         names.sort();
         assert_eq!(
@@ -86,8 +88,11 @@ mod tests {
     fn a_brighter_image_moves_the_latent_and_the_gradient_reaches_the_map() {
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let reader =
-            BackgroundReader::new(&Config::small(), 4, vb.pp("background_reader")).unwrap();
+        let cfg = Config {
+            feature_dim: 4,
+            ..Config::small()
+        };
+        let reader = BackgroundReader::new(&cfg, vb.pp("background_reader")).unwrap();
         let tokens = Tensor::rand(0f32, 1.0, (1, 5, 4), &Device::Cpu).unwrap();
         let dim = reader.forward(&tokens).unwrap();
         let bright = reader.forward(&(&tokens * 2.0).unwrap()).unwrap();

@@ -69,7 +69,7 @@ pub struct Config {
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub static_background: bool,
     /// The background latent is read from the whole image — the mean of the encoder's tokens,
-    /// layer-normalised and projected to the slot size (`background_reader.`) — instead of
+    /// projected to the slot size (`background_reader.`) — instead of
     /// taken from slot attention's background slot, which still competes for the pixels.
     /// Slot attention trained with a zero background never learns to put what differs between
     /// images into that slot; the mean of the features always carries the floor's brightness

@@ -82,23 +82,13 @@ pub fn grow_tensors(
         if !old.zero_background {
             bail!("{name}: a background reader grows only on a model trained with a zero background latent (its renders then start unchanged)");
         }
-        let fresh = super::Colf::init(cfg, seed)?;
-        for (key, tensor) in fresh.parameters() {
-            if key.starts_with("background_reader.") {
-                out.insert(key.clone(), tensor.clone());
-            }
-        }
+        insert_fresh(&mut out, cfg, seed, "background_reader.")?;
     } else if old.background_reader && !cfg.background_reader {
         bail!("{name}: a model's background reader cannot be removed");
     }
     if cfg.shadow_head && !old.shadow_head {
         // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).
-        let fresh = super::Colf::init(cfg, seed)?;
-        for (key, tensor) in fresh.parameters() {
-            if key.starts_with("heads.shadow.") {
-                out.insert(key.clone(), tensor.clone());
-            }
-        }
+        insert_fresh(&mut out, cfg, seed, "heads.shadow.")?;
     } else if old.shadow_head && !cfg.shadow_head {
         bail!("{name}: a model's shadow head cannot be removed");
     }
@@ -132,6 +122,23 @@ pub fn grow_tensors(
         grow.static_field(&mut out, "background_field.")?;
     }
     Ok(out)
+}
+
+/// A freshly initialised model's (`cfg`, `seed`) tensors whose names start with `prefix`, put
+/// into `out`: the parameters of a module the grown model gains whole.
+fn insert_fresh(
+    out: &mut BTreeMap<String, Tensor>,
+    cfg: &Config,
+    seed: u64,
+    prefix: &str,
+) -> Result<()> {
+    let fresh = super::Colf::init(cfg, seed)?;
+    for (key, tensor) in fresh.parameters() {
+        if key.starts_with(prefix) {
+            out.insert(key.clone(), tensor.clone());
+        }
+    }
+    Ok(())
 }
 
 /// Values drawn from N(0, rms(`like`)²) in `shape`, seeded by (seed, `name`).

@@ -78,7 +78,6 @@ impl ColfNet {
         let background_reader = if cfg.background_reader {
             Some(background_reader::BackgroundReader::new(
                 cfg,
-                cfg.feature_dim,
                 vb.pp("background_reader"),
             )?)
         } else {
