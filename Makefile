@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both bench tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default bench tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -77,7 +77,7 @@ man:
 
 # Synthesise a held-out scene, encode its first view (the model's default encoding: 12 slots, best of
 # 4 tries, 50 refinement steps, then the slots the view does not need dropped: one slot an
-# object), move one object (the blue cylinder) and delete another (the cyan cylinder),
+# object), move one object (the blue cylinder) and delete another (the large cyan cylinder),
 # render an orbit of novel views with masks before and after the edit, and draw a contact sheet:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
@@ -226,8 +226,9 @@ model-blender: build
 # u1 bought nothing: docs/training.md); u2-u5 follow the supervised stages 3-6 (2,000 scenes;
 # uniform rays; shadows; 4 views a scene), u5 without the compositor's mask loss (the proposals'
 # borders are rougher than the objects'). The result gets the same default encoding as the
-# supervised model, is scored, and becomes models/default.safetensors. Re-running resumes from
-# the checkpoints in $(UNSUP_RUN). About 7 CPU-hours: run it in the background.
+# supervised model and is scored: $(UNSUP_RUN)/model.safetensors, the analytic-only model that
+# make model-both then grows into the bundled default (make model-default runs both). Re-running
+# resumes from the checkpoints in $(UNSUP_RUN). About 7 CPU-hours: run it in the background.
 UNSUP_RUN ?= out/unsup
 UNSUP_COMMON := --proposals --attention-mask-weight 0.1 \
   --eval-data $(UNSUP_RUN)/data/test --checkpoint-every 250 --keep-every 2000
@@ -273,14 +274,19 @@ model-unsupervised: build
 	$(RELEASE)/colf-train configure $(UNSUP_RUN)/u5.safetensors \
 	  --set 'inference={"slots":12,"tries":4,"refine":50}' -o $(UNSUP_RUN)/model.safetensors
 	$(call eval_model,$(UNSUP_RUN),$(UNSUP_RUN)/model.safetensors)
-	cp $(UNSUP_RUN)/model.safetensors models/default.safetensors
 
-# One model for both looks, without labels (docs/training.md, run r2; not yet bundled): the
-# default model of `make model-unsupervised` ($(UNSUP_RUN)/model.safetensors) grows a background
+# The bundled default model: both recipes, one after the other (about 8 CPU-hours and Blender).
+model-default:
+	$(MAKE) model-unsupervised
+	$(MAKE) model-both
+
+# One model for both looks, without labels (docs/training.md, run r2): the bundled default
+# model. The analytic model of `make model-unsupervised` ($(UNSUP_RUN)/model.safetensors) grows a background
 # that reads the image (--set background_reader=true) and trains on 600 Blender scenes, 600 of
 # its own analytic ones and 400 with a randomised look, all without mask files; object
 # proposals feed the attention mask loss, as in u5. Writes $(BOTH_RUN)/model.safetensors and
-# scores it on the analytic and the Blender (128²) test scenes. Needs Blender; re-running resumes.
+# scores it on the analytic and the Blender (128²) test scenes, then copies it to
+# models/default.safetensors. Needs Blender; re-running resumes.
 BOTH_RUN ?= out/both
 model-both: build
 	test -f $(UNSUP_RUN)/model.safetensors || { echo "model-both: run make model-unsupervised first" >&2; exit 1; }
@@ -307,6 +313,7 @@ model-both: build
 	  > $(BOTH_RUN)/analytic64.json.tmp && mv $(BOTH_RUN)/analytic64.json.tmp $(BOTH_RUN)/analytic64.json
 	$(RELEASE)/colf-eval --data $(BOTH_RUN)/data/test128 --model $(BOTH_RUN)/model.safetensors \
 	  > $(BOTH_RUN)/blender128.json.tmp && mv $(BOTH_RUN)/blender128.json.tmp $(BOTH_RUN)/blender128.json
+	cp $(BOTH_RUN)/model.safetensors models/default.safetensors
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1

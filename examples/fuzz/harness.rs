@@ -127,7 +127,8 @@ pub fn tiny_config() -> Config {
     }
 }
 
-/// A valid scene of four slots with 8-dimensional latents.
+/// A valid scene of five slots with 8-dimensional latents (enough for the demo's edits, the
+/// edits target's seed, to apply).
 pub fn small_codes() -> Codes {
     let slot = |i: usize| Slot {
         latent: (0..8)
@@ -138,7 +139,7 @@ pub fn small_codes() -> Codes {
         source: format!("scene.png#{i}"),
     };
     Codes {
-        slots: (0..4).map(slot).collect(),
+        slots: (0..5).map(slot).collect(),
         background: vec![0.5; 8],
         model: "fuzz-model".into(),
     }
