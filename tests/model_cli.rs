@@ -69,3 +69,76 @@ fn the_bundled_default_model_is_found_and_loads() {
     let explicit = colf::cli::model_path::resolve_model_path(Some("/x/m.safetensors")).unwrap();
     assert_eq!(explicit, std::path::PathBuf::from("/x/m.safetensors"));
 }
+
+/// Mean of the pixels of `image` (a PNG path) where `mask` (a mask PNG path) is background.
+fn floor_mean(image: &std::path::Path, mask: &std::path::Path) -> f64 {
+    let rgb = colf::image_io::read_rgb(image.to_str().unwrap()).unwrap();
+    let (_, _, labels) = colf::image_io::read_labels(mask.to_str().unwrap()).unwrap();
+    let floor: Vec<usize> = (0..rgb.pixels()).filter(|&i| labels[i] == 0).collect();
+    assert!(floor.len() > rgb.pixels() / 2, "the view is mostly floor");
+    let sum: f64 = floor
+        .iter()
+        .flat_map(|&i| &rgb.data[3 * i..3 * i + 3])
+        .map(|&v| v as f64)
+        .sum();
+    sum / (3 * floor.len()) as f64
+}
+
+#[test]
+fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
+    // The default model reads its background from the image (issue: real CLEVR-567), so a
+    // darker photo of the same scene, as Blender's renders are darker than colf-synth's, gets
+    // a darker floor. A model with one fixed background (zero_background) draws the same floor
+    // for both, and fails here.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = common::synth_scene(dir.path(), &["--split", "test"]);
+    let view = scene.join("view_000.png");
+    let mask = scene.join("view_000.mask.png");
+    let bright = colf::image_io::read_rgb(view.to_str().unwrap()).unwrap();
+    let dark: Vec<f32> = bright.data.iter().map(|v| v * 0.6).collect();
+    let dark_view = dir.path().join("dark.png");
+    std::fs::write(
+        &dark_view,
+        colf::image_io::encode_png_rgb(bright.w, bright.h, &dark),
+    )
+    .unwrap();
+    let cameras = scene.join("transforms.json");
+    let mut drawn = Vec::new();
+    for (name, input) in [("bright", &view), ("dark", &dark_view)] {
+        let codes = dir.path().join(format!("{name}.codes"));
+        bin("colf-encode")
+            .arg(input)
+            .args(["--fast", "--camera"])
+            .arg(&cameras)
+            .arg("-o")
+            .arg(&codes)
+            .assert()
+            .success();
+        let out = dir.path().join(name);
+        bin("colf-render")
+            .arg(&codes)
+            .arg("--cameras")
+            .arg(&cameras)
+            .arg("--out")
+            .arg(&out)
+            .arg("-q")
+            .assert()
+            .success();
+        // A transforms.json camera keeps its frame's file name.
+        drawn.push(floor_mean(&out.join("view_000.png"), &mask));
+    }
+    let (given_bright, given_dark) = (floor_mean(&view, &mask), floor_mean(&dark_view, &mask));
+    let step = given_bright - given_dark;
+    assert!(step > 0.15, "{given_bright} {given_dark}");
+    // Each render's floor lies within 15 % of the step of its own input's floor (measured:
+    // 2 % and 5 %; the fixed-background `blender` model and the analytic-only model this one
+    // grew from miss the dark floor by 56 % and 89 %).
+    assert!(
+        (drawn[0] - given_bright).abs() < 0.15 * step,
+        "{drawn:?} vs {given_bright}"
+    );
+    assert!(
+        (drawn[1] - given_dark).abs() < 0.15 * step,
+        "{drawn:?} vs {given_dark}"
+    );
+}
