@@ -109,7 +109,9 @@ demo: build
 # edited and rendered with the bundled `blender` model (the supervised model adapted to Blender's
 # look without labels: make model-blender). The edit moves the blue cylinder (slot 2 of this
 # encoding) and deletes the large cyan one (slots 1 and 5: the encoding gave it a second slot,
-# hidden behind it in the input view). The sheet is docs/blender-sheet.png.
+# hidden behind it in the input view). The sheet is docs/blender-sheet.png. The default model
+# also encodes this scene, less well: it draws the small green cylinder blue, and deleting the
+# large cyan one leaves a faint cyan haze (docs/training.md, run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
 
