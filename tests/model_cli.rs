@@ -86,9 +86,8 @@ fn floor_mean(image: &std::path::Path, mask: &std::path::Path) -> f64 {
 
 #[test]
 fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
-    // The default model reads its background from the image (issue: real CLEVR-567), so a
-    // darker photo of the same scene, as Blender's renders are darker than colf-synth's, gets
-    // a darker floor. A model with one fixed background (zero_background) draws the same floor
+    // The default model reads its background from the image, so a darker photo of the same
+    // scene (Blender's renders of CLEVR are darker than colf-synth's) gets a darker floor. A model with one fixed background (zero_background) draws the same floor
     // for both, and fails here.
     let dir = tempfile::tempdir().unwrap();
     let scene = common::synth_scene(dir.path(), &["--split", "test"]);
