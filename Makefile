@@ -143,11 +143,12 @@ STAGE34_FLAGS := $(MODEL_COMMON) --data $(MODEL_RUN)/data/train2k --eval-every 2
 # $(call eval_model,RUN,MODEL): MODEL scored on RUN/data/test with its default encoding
 # (RUN/eval.json) and in one pass (RUN/eval-fast.json), each written only when complete.
 define eval_model
-	$(RELEASE)/colf-eval --data $(1)/data/test --model $(2) > $(1)/eval.json.tmp \
-	  && mv $(1)/eval.json.tmp $(1)/eval.json
-	$(RELEASE)/colf-eval --data $(1)/data/test --model $(2) --fast > $(1)/eval-fast.json.tmp \
-	  && mv $(1)/eval-fast.json.tmp $(1)/eval-fast.json
+	$(call eval_json,$(1)/data/test,$(2),$(1)/eval.json)
+	$(call eval_json,$(1)/data/test,$(2),$(1)/eval-fast.json,--fast)
 endef
+# $(call eval_json,DATA,MODEL,OUT[,FLAGS]): colf-eval's summary of MODEL on DATA, written to OUT
+# only once the evaluation has finished.
+eval_json = $(RELEASE)/colf-eval --data $(1) --model $(2) $(4) > $(3).tmp && mv $(3).tmp $(3)
 # $(call resume_or_init,OUT,INIT): continue OUT's checkpoint if there is one, else start from INIT.
 resume_or_init = $(if $(wildcard $(1).ckpt),--resume,--init $(2))
 model: build
@@ -311,10 +312,8 @@ model-both: build
 	  --lr-scale background_reader.=10 --lr-scale hypernet_bg.fc1.=10 \
 	  $(if $(wildcard $(BOTH_RUN)/model.safetensors.ckpt),--resume,--init $(UNSUP_RUN)/model.safetensors \
 	  --set zero_background=false --set background_reader=true)
-	$(RELEASE)/colf-eval --data $(UNSUP_RUN)/data/test --model $(BOTH_RUN)/model.safetensors \
-	  > $(BOTH_RUN)/analytic64.json.tmp && mv $(BOTH_RUN)/analytic64.json.tmp $(BOTH_RUN)/analytic64.json
-	$(RELEASE)/colf-eval --data $(BOTH_RUN)/data/test128 --model $(BOTH_RUN)/model.safetensors \
-	  > $(BOTH_RUN)/blender128.json.tmp && mv $(BOTH_RUN)/blender128.json.tmp $(BOTH_RUN)/blender128.json
+	$(call eval_json,$(UNSUP_RUN)/data/test,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/analytic64.json)
+	$(call eval_json,$(BOTH_RUN)/data/test128,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/blender128.json)
 	cp $(BOTH_RUN)/model.safetensors models/default.safetensors
 
 install: build

@@ -17,8 +17,9 @@ for spec in "$@"; do
     [ -d "$scene" ] || { echo "mix_scenes.sh: $src: no scene folders" >&2; exit 1; }
     out="$dest.tmp/${prefix}_$(basename "$scene")"
     mkdir "$out"
+    abs=$(cd "$scene" && pwd)   # links must not depend on where DEST is
     for f in "$scene"/*; do
-      case $f in *.mask.png) ;; *) ln -s "$(cd "$(dirname "$f")" && pwd)/$(basename "$f")" "$out/" ;; esac
+      case $f in *.mask.png) ;; *) ln -s "$abs/$(basename "$f")" "$out/" ;; esac
     done
     count=$((count + 1))
   done

@@ -70,12 +70,15 @@ fn the_bundled_default_model_is_found_and_loads() {
     assert_eq!(explicit, std::path::PathBuf::from("/x/m.safetensors"));
 }
 
-/// Mean of the pixels of `image` (a PNG path) where `mask` (a mask PNG path) is background.
-fn floor_mean(image: &std::path::Path, mask: &std::path::Path) -> f64 {
-    let rgb = colf::image_io::read_rgb(image.to_str().unwrap()).unwrap();
+/// Indices of the background pixels (label 0) of a mask PNG.
+fn floor_pixels(mask: &std::path::Path) -> Vec<usize> {
     let (_, _, labels) = colf::image_io::read_labels(mask.to_str().unwrap()).unwrap();
-    let floor: Vec<usize> = (0..rgb.pixels()).filter(|&i| labels[i] == 0).collect();
-    assert!(floor.len() > rgb.pixels() / 2, "the view is mostly floor");
+    (0..labels.len()).filter(|&i| labels[i] == 0).collect()
+}
+
+/// Mean value of `image` (a PNG path) over the pixels `floor`.
+fn mean_over(image: &std::path::Path, floor: &[usize]) -> f64 {
+    let rgb = colf::image_io::read_rgb(image.to_str().unwrap()).unwrap();
     let sum: f64 = floor
         .iter()
         .flat_map(|&i| &rgb.data[3 * i..3 * i + 3])
@@ -87,12 +90,13 @@ fn floor_mean(image: &std::path::Path, mask: &std::path::Path) -> f64 {
 #[test]
 fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
     // The default model reads its background from the image, so a darker photo of the same
-    // scene (Blender's renders of CLEVR are darker than colf-synth's) gets a darker floor. A model with one fixed background (zero_background) draws the same floor
-    // for both, and fails here.
+    // scene (Blender's renders of CLEVR are darker than colf-synth's) gets a darker floor. A
+    // model with one fixed background (zero_background) draws the same floor for both, and
+    // fails here.
     let dir = tempfile::tempdir().unwrap();
     let scene = common::synth_scene(dir.path(), &["--split", "test"]);
     let view = scene.join("view_000.png");
-    let mask = scene.join("view_000.mask.png");
+    let floor = floor_pixels(&scene.join("view_000.mask.png"));
     let bright = colf::image_io::read_rgb(view.to_str().unwrap()).unwrap();
     let dark: Vec<f32> = bright.data.iter().map(|v| v * 0.6).collect();
     let dark_view = dir.path().join("dark.png");
@@ -101,6 +105,10 @@ fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
         colf::image_io::encode_png_rgb(bright.w, bright.h, &dark),
     )
     .unwrap();
+    assert!(
+        floor.len() > bright.pixels() / 2,
+        "the view is mostly floor"
+    );
     let cameras = scene.join("transforms.json");
     let mut drawn = Vec::new();
     for (name, input) in [("bright", &view), ("dark", &dark_view)] {
@@ -124,9 +132,9 @@ fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
             .assert()
             .success();
         // A transforms.json camera keeps its frame's file name.
-        drawn.push(floor_mean(&out.join("view_000.png"), &mask));
+        drawn.push(mean_over(&out.join("view_000.png"), &floor));
     }
-    let (given_bright, given_dark) = (floor_mean(&view, &mask), floor_mean(&dark_view, &mask));
+    let (given_bright, given_dark) = (mean_over(&view, &floor), mean_over(&dark_view, &floor));
     let step = given_bright - given_dark;
     assert!(step > 0.15, "{given_bright} {given_dark}");
     // Each render's floor lies within 15 % of the step of its own input's floor (measured:

@@ -49,15 +49,21 @@ mod tests {
             .unwrap()
     }
 
-    #[test]
-    fn reads_the_mean_token_whatever_the_order_and_count() {
+    /// A fresh reader for tokens of `feature_dim` values, its parameters in the returned map.
+    fn fresh_reader(feature_dim: usize) -> (VarMap, Config, BackgroundReader) {
         let varmap = VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
         let cfg = Config {
-            feature_dim: 8,
+            feature_dim,
             ..Config::small()
         };
         let reader = BackgroundReader::new(&cfg, vb.pp("background_reader")).unwrap();
+        (varmap, cfg, reader)
+    }
+
+    #[test]
+    fn reads_the_mean_token_whatever_the_order_and_count() {
+        let (varmap, cfg, reader) = fresh_reader(8);
         let mut names: Vec<String> = varmap.data().lock().unwrap().keys().cloned().collect();
         names.sort();
         assert_eq!(
@@ -86,13 +92,7 @@ mod tests {
 
     #[test]
     fn a_brighter_image_moves_the_latent_and_the_gradient_reaches_the_map() {
-        let varmap = VarMap::new();
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let cfg = Config {
-            feature_dim: 4,
-            ..Config::small()
-        };
-        let reader = BackgroundReader::new(&cfg, vb.pp("background_reader")).unwrap();
+        let (varmap, _, reader) = fresh_reader(4);
         let tokens = Tensor::rand(0f32, 1.0, (1, 5, 4), &Device::Cpu).unwrap();
         let dim = reader.forward(&tokens).unwrap();
         let bright = reader.forward(&(&tokens * 2.0).unwrap()).unwrap();
