@@ -5,7 +5,7 @@
 //! - `fitted`: PSNR of the views the latents were fitted to (how well the decoder can draw a
 //!   scene whose latents are chosen for those views);
 //! - `held out`: PSNR of the views from index max(V) on, the same views for every V (what more
-//!   views of the scene buy for the views nobody saw).
+//!   views of the scene buy for the views nobody saw); `—` when V covers every view.
 //!
 //! Usage: `multiview_fit --data DIR [--model M] [--scenes 10] [--views 1,2,3] [--steps 50]`
 //! (refinement with the `colf-encode --refine` defaults otherwise).
@@ -87,9 +87,9 @@ fn main() -> Result<()> {
         let (mut fitted, mut held_out) = (Vec::new(), Vec::new());
         for i in 0..args.scenes.min(data.len()) {
             let scene = data.load(i)?;
-            if scene.views.len() <= fit {
+            if scene.views.len() < fit {
                 bail!(
-                    "{}: {} views, none left after fitting {fit}",
+                    "{}: {} views, fewer than the {fit} to fit",
                     scene.name,
                     scene.views.len()
                 );
@@ -120,10 +120,15 @@ fn main() -> Result<()> {
             }
             eprintln!("views fitted {fit}: scene {} done", scene.name);
         }
+        // Fitting every view leaves none held out: say so rather than print a mean of nothing.
+        let held_out = if held_out.is_empty() {
+            "—".to_string()
+        } else {
+            format!("{:.2} dB", mean(&held_out))
+        };
         println!(
-            "| {fit} | {:.2} dB | {:.2} dB | {} |",
+            "| {fit} | {:.2} dB | {held_out} | {} |",
             mean(&fitted),
-            mean(&held_out),
             args.scenes.min(data.len())
         );
     }
