@@ -310,7 +310,7 @@ model-both: build
 	  --seed 61 --eval-data $(BOTH_RUN)/data/val --eval-every 1000 --eval-scenes 16 \
 	  --checkpoint-every 250 --keep-every 1000 \
 	  --lr-scale background_reader.=10 --lr-scale hypernet_bg.fc1.=10 \
-	  $(if $(wildcard $(BOTH_RUN)/model.safetensors.ckpt),--resume,--init $(UNSUP_RUN)/model.safetensors \
+	  $(call resume_or_init,$(BOTH_RUN)/model.safetensors,$(UNSUP_RUN)/model.safetensors \
 	  --set zero_background=false --set background_reader=true)
 	$(call eval_json,$(UNSUP_RUN)/data/test,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/analytic64.json)
 	$(call eval_json,$(BOTH_RUN)/data/test128,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/blender128.json)

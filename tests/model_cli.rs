@@ -76,12 +76,11 @@ fn floor_pixels(mask: &std::path::Path) -> Vec<usize> {
     (0..labels.len()).filter(|&i| labels[i] == 0).collect()
 }
 
-/// Mean value of `image` (a PNG path) over the pixels `floor`.
-fn mean_over(image: &std::path::Path, floor: &[usize]) -> f64 {
-    let rgb = colf::image_io::read_rgb(image.to_str().unwrap()).unwrap();
+/// Mean value of interleaved RGB values `rgb` over the pixels `floor`.
+fn mean_over(rgb: &[f32], floor: &[usize]) -> f64 {
     let sum: f64 = floor
         .iter()
-        .flat_map(|&i| &rgb.data[3 * i..3 * i + 3])
+        .flat_map(|&i| &rgb[3 * i..3 * i + 3])
         .map(|&v| v as f64)
         .sum();
     sum / (3 * floor.len()) as f64
@@ -132,9 +131,10 @@ fn the_bundled_default_model_draws_the_floor_of_the_image_it_is_given() {
             .assert()
             .success();
         // A transforms.json camera keeps its frame's file name.
-        drawn.push(mean_over(&out.join("view_000.png"), &floor));
+        let render = colf::image_io::read_rgb(out.join("view_000.png").to_str().unwrap()).unwrap();
+        drawn.push(mean_over(&render.data, &floor));
     }
-    let (given_bright, given_dark) = (mean_over(&view, &floor), mean_over(&dark_view, &floor));
+    let (given_bright, given_dark) = (mean_over(&bright.data, &floor), mean_over(&dark, &floor));
     let step = given_bright - given_dark;
     assert!(step > 0.15, "{given_bright} {given_dark}");
     // Each render's floor lies within 15 % of the step of its own input's floor (measured:

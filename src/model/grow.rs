@@ -78,20 +78,23 @@ pub fn grow_tensors(
             *weight = weight.zeros_like()?;
         }
     }
+    // Modules the grown model gains whole, by tensor-name prefix: taken from one fresh model.
+    let mut gained = Vec::new();
     if cfg.background_reader && !old.background_reader {
         if !old.zero_background {
             bail!("{name}: a background reader grows only on a model trained with a zero background latent (its renders then start unchanged)");
         }
-        insert_fresh(&mut out, cfg, seed, "background_reader.")?;
+        gained.push("background_reader.");
     } else if old.background_reader && !cfg.background_reader {
         bail!("{name}: a model's background reader cannot be removed");
     }
     if cfg.shadow_head && !old.shadow_head {
         // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).
-        insert_fresh(&mut out, cfg, seed, "heads.shadow.")?;
+        gained.push("heads.shadow.");
     } else if old.shadow_head && !cfg.shadow_head {
         bail!("{name}: a model's shadow head cannot be removed");
     }
+    insert_fresh(&mut out, cfg, seed, &gained)?;
     for (key, from, to) in [
         ("hypernet_hidden", old.hypernet_hidden, cfg.hypernet_hidden),
         ("lfn_hidden", old.lfn_hidden, cfg.lfn_hidden),
@@ -124,17 +127,21 @@ pub fn grow_tensors(
     Ok(out)
 }
 
-/// A freshly initialised model's (`cfg`, `seed`) tensors whose names start with `prefix`, put
-/// into `out`: the parameters of a module the grown model gains whole.
+/// A freshly initialised model's (`cfg`, `seed`) tensors whose names start with one of
+/// `prefixes`, put into `out`: the parameters of the modules the grown model gains whole. The
+/// fresh model is built once, and only when some module is gained.
 fn insert_fresh(
     out: &mut BTreeMap<String, Tensor>,
     cfg: &Config,
     seed: u64,
-    prefix: &str,
+    prefixes: &[&str],
 ) -> Result<()> {
+    if prefixes.is_empty() {
+        return Ok(());
+    }
     let fresh = super::Colf::init(cfg, seed)?;
     for (key, tensor) in fresh.parameters() {
-        if key.starts_with(prefix) {
+        if prefixes.iter().any(|p| key.starts_with(p)) {
             out.insert(key.clone(), tensor.clone());
         }
     }
