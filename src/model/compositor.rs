@@ -67,6 +67,18 @@ impl Compositor {
         })
     }
 
+    /// The parameters in the order the decode kernel packs them (`decode_kernel::SharedLayout`):
+    /// V's layers (weight, then bias where there is one), then `gap_log_slope`.
+    pub fn kernel_parameters(&self) -> Vec<Tensor> {
+        let mut out = Vec::new();
+        for layer in self.v.linears() {
+            out.push(layer.weight().clone());
+            out.extend(layer.bias().cloned());
+        }
+        out.push(self.gap_log_slope.clone());
+        out
+    }
+
     /// ordering [B, R, S] (the heads' values), shift [B, R, S] (world units, from `RayBatch`).
     pub fn forward(&self, ordering: &Tensor, shift: &Tensor) -> Result<Composite> {
         let world = (ordering * self.scene_scale)?.add(shift)?;

@@ -92,6 +92,24 @@ impl Heads {
         Ok((color, ordering))
     }
 
+    /// The heads' parameters in the order the decode kernel packs them
+    /// (`decode_kernel::SharedLayout`): per colour layer its weight and bias, the same for the
+    /// ordering head, then the shadow head's weight and bias.
+    pub fn kernel_parameters(&self) -> Vec<Tensor> {
+        let mut out = Vec::new();
+        for mlp in [&self.color, &self.ordering] {
+            for layer in mlp.linears() {
+                out.push(layer.weight().clone());
+                out.extend(layer.bias().cloned());
+            }
+        }
+        if let Some(shadow) = &self.shadow {
+            out.push(shadow.logit.weight().clone());
+            out.extend(shadow.logit.bias().cloned());
+        }
+        out
+    }
+
     /// features [.., F] → shadow density σ [.., 1], when the model has a shadow head.
     pub fn shadow(&self, features: &Tensor) -> Result<Option<Tensor>> {
         self.shadow

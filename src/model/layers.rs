@@ -82,6 +82,11 @@ impl Mlp {
         });
         Ok(Mlp { layers })
     }
+
+    /// The layers, input layer first.
+    pub fn linears(&self) -> &[Linear] {
+        &self.layers
+    }
 }
 
 impl Module for Mlp {

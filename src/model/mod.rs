@@ -13,6 +13,7 @@ pub mod checkpoint;
 pub mod compositor;
 pub mod config;
 pub mod conv;
+pub mod decode_kernel;
 pub mod encoder;
 pub mod frames;
 pub mod fused;

@@ -3,6 +3,7 @@
 //! differentiable; training and test-time refinement run through it.
 
 use super::*;
+use super::decode_kernel;
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
 use rand::rngs::StdRng;
@@ -20,6 +21,10 @@ pub struct ColfNet {
     /// With `Config::background_reader`: where the background latent comes from.
     pub background_reader: Option<background_reader::BackgroundReader>,
     pub decoder: Decoder,
+    /// Decode through the composition of candle ops ([`ColfNet::decode_reference`]) instead of
+    /// the fused kernel (`decode_kernel.rs`): the same function, at a fraction of the speed;
+    /// kept as the reference the kernel is tested against.
+    pub reference_decoder: bool,
 }
 
 /// How slots become pixels.
@@ -102,6 +107,7 @@ impl ColfNet {
             slot_attention,
             background_reader,
             decoder,
+            reference_decoder: false,
         })
     }
 
@@ -164,10 +170,23 @@ impl ColfNet {
         SlotWeights::join_scenes(&bg_w, Some(&fg_w), b, k)
     }
 
-    /// Evaluates prepared light fields on encoded rays and composites them.
+    /// Evaluates prepared light fields on encoded rays and composites them: by the fused kernel
+    /// (`decode_kernel.rs`) on the CPU, else (or with `reference_decoder`) by candle ops.
     pub fn decode(&self, fields: &SlotWeights, rays: &RayBatch) -> candle_core::Result<Decoded> {
         let lf = self.light_field_or_err()?;
-        let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
+        let f32_cpu = |t: &Tensor| t.device().is_cpu() && t.dtype() == candle_core::DType::F32;
+        if self.reference_decoder
+            || !f32_cpu(&rays.coords)
+            || !fields.layers.iter().all(|l| f32_cpu(&l.weight))
+        {
+            return self.decode_reference(fields, rays);
+        }
+        self.check_fields(fields, rays)?;
+        decode_kernel::decode(&self.cfg, lf, fields, rays)
+    }
+
+    fn check_fields(&self, fields: &SlotWeights, rays: &RayBatch) -> candle_core::Result<()> {
+        let (b, s) = (rays.scenes, rays.fields);
         if fields.num_fields()? != b * s {
             candle_core::bail!(
                 "{} prepared light fields for {} scenes × {} fields of rays",
@@ -176,6 +195,19 @@ impl ColfNet {
                 s
             );
         }
+        Ok(())
+    }
+
+    /// [`ColfNet::decode`] as a composition of candle ops, differentiated by candle's autograd:
+    /// the reference the fused kernel is tested against.
+    pub fn decode_reference(
+        &self,
+        fields: &SlotWeights,
+        rays: &RayBatch,
+    ) -> candle_core::Result<Decoded> {
+        let lf = self.light_field_or_err()?;
+        let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
+        self.check_fields(fields, rays)?;
         let features = fields.forward(&rays.coords)?; // [B·S, R, F]
         let (color, ordering) = lf.heads.forward(&features)?;
         let mut colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]

@@ -1,0 +1,1393 @@
+//! The light-field decoder as one candle op with a hand-written backward: every slot's light
+//! field (on the camera ray and, with `shadow_light`, on its shadow line), the colour, ordering
+//! and shadow heads, the shadows and the compositor, for all rays of a batch.
+//!
+//! Why: built from candle ops, a training step spent most of its time outside the matmuls —
+//! gathers and permutes of [B, R, S] tensors, element-wise passes with an allocation each, and
+//! a backward that ran on under one core (`docs/speed.md`). Here, in the manner of llm.c and
+//! tiny-cuda-nn:
+//! - **Field passes** (one work unit per scene and field, ray chunks of [`CHUNK`] rays that stay
+//!   in cache): the light field's layers and the heads as one `gemm` each, bias and ReLU in the
+//!   same pass; their activations are kept for the backward.
+//! - **Ray passes** (one unit per scene and chunk of rays): the shadows, the compositor's MLP V
+//!   (one `gemm` per layer over the chunk's rays × fields), the softmax and the blend.
+//! - The backward runs the same units in reverse: per ray the compositor's and the blend's
+//!   derivatives, then per field the heads' and the light field's layers (two `gemm`s each: the
+//!   input's and the weight's gradient), down to the generated weights, the shared heads'
+//!   parameters and — when they are differentiable, as in refinement with moving frames — the
+//!   encoded rays and ordering shifts.
+//!
+//! Units run in parallel on rayon's threads with single-threaded `gemm`s; each unit's share of a
+//! shared gradient is kept apart and the shares are summed in unit order, so the result is the
+//! same bytes whatever the thread count. `tests` check values and every gradient against the
+//! candle composition (`ColfNet::decode_reference`) on random models.
+//!
+//! The op's inputs: the S·B light fields' generated parameters packed as [B·S, P] (per layer the
+//! weight [in, out] row-major, then the bias), the heads' and compositor's parameters packed as
+//! [Q] ([`SharedLayout`]), and the rays. Its output packs, per ray, [`Channels`]: the composited
+//! colour, the log-weights, the weights, the world orderings, the shadow densities and each
+//! field's colour; `ColfNet::decode` narrows it into a `Decoded`.
+
+use super::config::Config;
+use super::heads::SHADOW_LOGIT_GAIN;
+use super::light_field::SlotWeights;
+use super::net::{Decoded, LightFieldDecoder};
+use super::rays::RayBatch;
+use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Storage, Tensor};
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// Rays per chunk of a field pass: a chunk's activations (128 × 256 floats per layer at the
+/// paper's width) stay in the core's L2 cache between a layer's forward and the next.
+const CHUNK: usize = 128;
+/// Rays per unit of the ray passes.
+const RAY_CHUNK: usize = 64;
+
+/// One dense layer of an MLP inside a flat parameter buffer: y = act(x·W + b) with W read as
+/// an [in, out] matrix at `w` with row stride `w_rs` and column stride `w_cs` (a generated
+/// weight is [in, out] row-major; a `Linear` weight [out, in] is read transposed).
+#[derive(Clone, Copy, Debug)]
+pub struct DenseLayer {
+    pub w: usize,
+    pub w_rs: usize,
+    pub w_cs: usize,
+    pub bias: Option<usize>,
+    pub fan_in: usize,
+    pub fan_out: usize,
+    pub relu: bool,
+}
+
+/// An MLP's layers, input layer first, ReLU after every layer but the last.
+#[derive(Clone, Debug, Default)]
+pub struct MlpLayout {
+    pub layers: Vec<DenseLayer>,
+}
+
+impl MlpLayout {
+    fn out_dim(&self) -> usize {
+        self.layers.last().map_or(0, |l| l.fan_out)
+    }
+    fn widest(&self) -> usize {
+        self.layers
+            .iter()
+            .map(|l| l.fan_in.max(l.fan_out))
+            .max()
+            .unwrap_or(0)
+    }
+    /// Multiply-adds per row of one forward pass.
+    fn macs(&self) -> usize {
+        self.layers.iter().map(|l| l.fan_in * l.fan_out).sum()
+    }
+}
+
+/// Lays out `Linear`-style layers (weight [out, in] then bias [out], or no bias on the last
+/// layer when `last_bias` is false) one after the other from `offset`; returns the layout and
+/// the offset after it.
+fn linear_layers(dims: &[usize], last_bias: bool, mut offset: usize) -> (MlpLayout, usize) {
+    let mut layers = Vec::new();
+    for l in 0..dims.len() - 1 {
+        let (fan_in, fan_out) = (dims[l], dims[l + 1]);
+        let last = l + 2 == dims.len();
+        let w = offset;
+        offset += fan_in * fan_out;
+        let bias = (!last || last_bias).then(|| {
+            offset += fan_out;
+            offset - fan_out
+        });
+        layers.push(DenseLayer {
+            w,
+            w_rs: 1,
+            w_cs: fan_in,
+            bias,
+            fan_in,
+            fan_out,
+            relu: !last,
+        });
+    }
+    (MlpLayout { layers }, offset)
+}
+
+/// The generated light field's layers inside one field's packed parameters: per layer the
+/// weight [in, out] row-major, then the bias [out]. Returns the layout and P.
+pub fn field_layout(cfg: &Config) -> (MlpLayout, usize) {
+    let dims = cfg.lfn_dims();
+    let mut offset = 0;
+    let mut layers = Vec::new();
+    for l in 0..dims.len() - 1 {
+        let (fan_in, fan_out) = (dims[l], dims[l + 1]);
+        layers.push(DenseLayer {
+            w: offset,
+            w_rs: fan_out,
+            w_cs: 1,
+            bias: Some(offset + fan_in * fan_out),
+            fan_in,
+            fan_out,
+            relu: l + 2 < dims.len(),
+        });
+        offset += fan_in * fan_out + fan_out;
+    }
+    (MlpLayout { layers }, offset)
+}
+
+/// Where the heads' and the compositor's parameters lie in the packed shared vector, in the
+/// order `ColfNet::decode` packs them: `heads.color.*`, `heads.ordering.*`, `heads.shadow.*`
+/// (with a shadow head), `compositor.v.*`, `compositor.gap_log_slope`.
+#[derive(Clone, Debug)]
+pub struct SharedLayout {
+    pub color: MlpLayout,
+    pub ordering: MlpLayout,
+    /// Offsets of the shadow head's weight [F] and bias [1].
+    pub shadow: Option<(usize, usize)>,
+    pub v: MlpLayout,
+    pub gap_log_slope: usize,
+    pub len: usize,
+}
+
+impl SharedLayout {
+    pub fn new(cfg: &Config) -> SharedLayout {
+        let f = cfg.lfn_features;
+        let head_dims = |out: usize| {
+            let mut d = vec![f];
+            d.extend(std::iter::repeat_n(cfg.head_hidden, cfg.head_hidden_layers));
+            d.push(out);
+            d
+        };
+        let (color, offset) = linear_layers(&head_dims(3), true, 0);
+        let (ordering, mut offset) = linear_layers(&head_dims(1), true, offset);
+        let shadow = cfg.shadow_head.then(|| {
+            offset += f + 1;
+            (offset - f - 1, offset - 1)
+        });
+        let mut v_dims = vec![2];
+        v_dims.extend(std::iter::repeat_n(
+            cfg.compositor_hidden,
+            cfg.compositor_hidden_layers,
+        ));
+        v_dims.push(1);
+        let (v, offset) = linear_layers(&v_dims, false, offset);
+        SharedLayout {
+            color,
+            ordering,
+            shadow,
+            v,
+            gap_log_slope: offset,
+            len: offset + 1,
+        }
+    }
+}
+
+/// Per ray, the op's output channels: [rgb 3 | log-weights S | weights S | orderings S |
+/// shadow σ S | colours 3·S].
+#[derive(Clone, Copy, Debug)]
+pub struct Channels {
+    pub fields: usize,
+}
+
+impl Channels {
+    pub const RGB: usize = 0;
+    pub fn log_weights(&self) -> usize {
+        3
+    }
+    pub fn weights(&self) -> usize {
+        3 + self.fields
+    }
+    pub fn ordering(&self) -> usize {
+        3 + 2 * self.fields
+    }
+    pub fn shadow(&self) -> usize {
+        3 + 3 * self.fields
+    }
+    pub fn colors(&self) -> usize {
+        3 + 4 * self.fields
+    }
+    pub fn count(&self) -> usize {
+        3 + 7 * self.fields
+    }
+}
+
+/// Everything about a decode that is not a tensor: sizes and layouts.
+#[derive(Clone, Debug)]
+pub struct DecodeShape {
+    pub scenes: usize,
+    pub fields: usize,
+    pub rays: usize,
+    pub in_dim: usize,
+    pub field: MlpLayout,
+    pub field_params: usize,
+    pub shared: SharedLayout,
+    /// Shadows read on each ray's shadow line (a second light-field pass), not on the ray.
+    pub shadow_lines: bool,
+    pub scene_scale: f32,
+}
+
+impl DecodeShape {
+    pub fn new(cfg: &Config, scenes: usize, fields: usize, rays: usize) -> DecodeShape {
+        let (field, field_params) = field_layout(cfg);
+        DecodeShape {
+            scenes,
+            fields,
+            rays,
+            in_dim: cfg.ray_input_dim(),
+            field,
+            field_params,
+            shared: SharedLayout::new(cfg),
+            shadow_lines: cfg.shadow_head && cfg.shadow_light.is_some(),
+            scene_scale: cfg.scene_scale as f32,
+        }
+    }
+
+    fn channels(&self) -> Channels {
+        Channels {
+            fields: self.fields,
+        }
+    }
+
+    /// Multiply-adds of one forward pass over all rays and fields (light fields, heads,
+    /// shadow head, shadow-line passes of the foreground fields, compositor), and of the
+    /// backward the op runs: two per forward one (the input's and the weight's gradient), less
+    /// the light fields' first-layer input gradients unless `ray_grads`. ×2 for FLOPs.
+    pub fn macs(&self, ray_grads: bool) -> (f64, f64) {
+        let (b, s, r) = (self.scenes as f64, self.fields as f64, self.rays as f64);
+        let lfn = self.field.macs() as f64;
+        let first = (self.field.layers[0].fan_in * self.field.layers[0].fan_out) as f64;
+        let heads = (self.shared.color.macs() + self.shared.ordering.macs()) as f64;
+        let v = self.shared.v.macs() as f64;
+        let fg = (s - 1.0).max(0.0);
+        let shadow_head = if self.shared.shadow.is_some() {
+            fg * self.field.out_dim() as f64
+        } else {
+            0.0
+        };
+        let passes = s + if self.shadow_lines && self.shared.shadow.is_some() {
+            fg
+        } else {
+            0.0
+        };
+        let fwd = b * r * (passes * lfn + s * (heads + v) + shadow_head);
+        let skipped = if ray_grads { 0.0 } else { b * r * passes * first };
+        (fwd, 2.0 * fwd - skipped)
+    }
+}
+
+/// dst (+)= lhs · rhs for strided [m, k] · [k, n] views of slices, on one thread.
+#[allow(clippy::too_many_arguments)]
+fn matmul(
+    (m, n, k): (usize, usize, usize),
+    dst: &mut [f32],
+    (dst_rs, dst_cs): (usize, usize),
+    accumulate: bool,
+    lhs: &[f32],
+    (lhs_rs, lhs_cs): (usize, usize),
+    rhs: &[f32],
+    (rhs_rs, rhs_cs): (usize, usize),
+) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    let last = |rows: usize, cols: usize, rs: usize, cs: usize| (rows - 1) * rs + (cols - 1) * cs;
+    assert!(last(m, n, dst_rs, dst_cs) < dst.len(), "matmul: dst too small");
+    if k == 0 {
+        if !accumulate {
+            for i in 0..m {
+                for j in 0..n {
+                    dst[i * dst_rs + j * dst_cs] = 0.0;
+                }
+            }
+        }
+        return;
+    }
+    assert!(last(m, k, lhs_rs, lhs_cs) < lhs.len(), "matmul: lhs too small");
+    assert!(last(k, n, rhs_rs, rhs_cs) < rhs.len(), "matmul: rhs too small");
+    // SAFETY: the asserts above keep every element each view addresses inside its slice; dst
+    // does not alias lhs or rhs (a &mut and two & borrows).
+    unsafe {
+        gemm::gemm(
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            dst_cs as isize,
+            dst_rs as isize,
+            accumulate,
+            lhs.as_ptr(),
+            lhs_cs as isize,
+            lhs_rs as isize,
+            rhs.as_ptr(),
+            rhs_cs as isize,
+            rhs_rs as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
+        );
+    }
+}
+
+/// y [n, out] = act(x [n, in] · W + b).
+fn dense_forward(layer: &DenseLayer, params: &[f32], x: &[f32], n: usize, y: &mut [f32]) {
+    let (i, o) = (layer.fan_in, layer.fan_out);
+    matmul(
+        (n, o, i),
+        &mut y[..n * o],
+        (o, 1),
+        false,
+        &x[..n * i],
+        (i, 1),
+        &params[layer.w..],
+        (layer.w_rs, layer.w_cs),
+    );
+    let bias = layer.bias.map(|b| &params[b..b + o]);
+    for row in y[..n * o].chunks_exact_mut(o) {
+        if let Some(bias) = bias {
+            for (v, b) in row.iter_mut().zip(bias) {
+                *v += b;
+            }
+        }
+        if layer.relu {
+            for v in row.iter_mut() {
+                *v = v.max(0.0);
+            }
+        }
+    }
+}
+
+/// The backward of [`dense_forward`]: `g` [n, out] holds dL/dy on entry (it is masked by the
+/// ReLU in place); adds dL/dW and dL/db to `grads` (laid out like `params`) and, when `dx` is
+/// given, writes dL/dx [n, in] there.
+#[allow(clippy::too_many_arguments)]
+fn dense_backward(
+    layer: &DenseLayer,
+    params: &[f32],
+    x: &[f32],
+    y: &[f32],
+    n: usize,
+    g: &mut [f32],
+    grads: &mut [f32],
+    dx: Option<&mut [f32]>,
+) {
+    let (i, o) = (layer.fan_in, layer.fan_out);
+    let g = &mut g[..n * o];
+    if layer.relu {
+        for (gv, yv) in g.iter_mut().zip(&y[..n * o]) {
+            if *yv <= 0.0 {
+                *gv = 0.0;
+            }
+        }
+    }
+    // dW [in, out] += xᵀ [in, n] · g [n, out].
+    matmul(
+        (i, o, n),
+        &mut grads[layer.w..],
+        (layer.w_rs, layer.w_cs),
+        true,
+        &x[..n * i],
+        (1, i),
+        g,
+        (o, 1),
+    );
+    if let Some(b) = layer.bias {
+        let db = &mut grads[b..b + o];
+        for row in g.chunks_exact(o) {
+            for (d, v) in db.iter_mut().zip(row) {
+                *d += v;
+            }
+        }
+    }
+    if let Some(dx) = dx {
+        // dx [n, in] = g [n, out] · Wᵀ [out, in].
+        matmul(
+            (n, i, o),
+            &mut dx[..n * i],
+            (i, 1),
+            false,
+            g,
+            (o, 1),
+            &params[layer.w..],
+            (layer.w_cs, layer.w_rs),
+        );
+    }
+}
+
+/// An MLP's activations for all rows of a unit, one buffer per layer ([rows, out]).
+#[derive(Debug, Default)]
+struct Activations {
+    layers: Vec<Vec<f32>>,
+}
+
+impl Activations {
+    fn new(mlp: &MlpLayout, rows: usize) -> Activations {
+        Activations {
+            layers: mlp
+                .layers
+                .iter()
+                .map(|l| vec![0f32; rows * l.fan_out])
+                .collect(),
+        }
+    }
+    fn output(&self) -> &[f32] {
+        self.layers.last().map_or(&[], |v| v.as_slice())
+    }
+}
+
+/// Forward of `mlp` on rows [r0, r0 + n) of `x` (the whole unit's input, [rows, in]).
+fn mlp_forward(
+    mlp: &MlpLayout,
+    params: &[f32],
+    x: &[f32],
+    acts: &mut Activations,
+    r0: usize,
+    n: usize,
+) {
+    for (l, layer) in mlp.layers.iter().enumerate() {
+        let (before, rest) = acts.layers.split_at_mut(l);
+        let input = if l == 0 {
+            &x[r0 * layer.fan_in..]
+        } else {
+            &before[l - 1][r0 * layer.fan_in..]
+        };
+        dense_forward(
+            layer,
+            params,
+            input,
+            n,
+            &mut rest[0][r0 * layer.fan_out..],
+        );
+    }
+}
+
+/// Scratch rows for an MLP's backward: two ping-pong gradient buffers.
+struct Scratch {
+    a: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl Scratch {
+    fn new(width: usize, n: usize) -> Scratch {
+        Scratch {
+            a: vec![0f32; width * n],
+            b: vec![0f32; width * n],
+        }
+    }
+}
+
+/// Backward of `mlp` on rows [r0, r0 + n): `g_out` [n, out] is dL/d(output); parameter
+/// gradients are added to `grads`; dL/dx [n, in] is written to `dx` when given.
+#[allow(clippy::too_many_arguments)]
+fn mlp_backward(
+    mlp: &MlpLayout,
+    params: &[f32],
+    x: &[f32],
+    acts: &Activations,
+    r0: usize,
+    n: usize,
+    g_out: &[f32],
+    grads: &mut [f32],
+    dx: Option<&mut [f32]>,
+    scratch: &mut Scratch,
+) {
+    let last = mlp.layers.len() - 1;
+    scratch.a[..n * mlp.out_dim()].copy_from_slice(&g_out[..n * mlp.out_dim()]);
+    let mut dx = dx;
+    for l in (0..=last).rev() {
+        let layer = &mlp.layers[l];
+        let input = if l == 0 {
+            &x[r0 * layer.fan_in..]
+        } else {
+            &acts.layers[l - 1][r0 * layer.fan_in..]
+        };
+        let y = &acts.layers[l][r0 * layer.fan_out..];
+        let Scratch { a, b } = scratch;
+        let target = if l > 0 {
+            Some(&mut b[..])
+        } else {
+            dx.as_deref_mut()
+        };
+        dense_backward(layer, params, input, y, n, a, grads, target);
+        std::mem::swap(&mut scratch.a, &mut scratch.b);
+    }
+}
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// softplus(x) = max(x, 0) + ln(1 + e^−|x|), as `heads.rs` computes it.
+fn softplus(x: f32) -> f32 {
+    x.max(0.0) + (-x.abs()).exp().ln_1p()
+}
+
+/// The rays' data, borrowed from the op's inputs.
+struct Rays<'a> {
+    coords: &'a [f32],
+    lines: Option<&'a [f32]>,
+    on_ground: Option<&'a [f32]>,
+    shift: &'a [f32],
+}
+
+/// One field's forward activations (all the scene's rays).
+#[derive(Debug, Default)]
+struct FieldPass {
+    lfn: Activations,
+    color: Activations,
+    /// sigmoid of the colour head [R, 3].
+    rgb: Vec<f32>,
+    ordering: Activations,
+    /// The shadow-line pass (foreground fields with shadow lines).
+    shadow_lfn: Option<Activations>,
+    /// w·f + b of the shadow head [R] (foreground fields with a shadow head).
+    shadow_affine: Vec<f32>,
+    /// σ [R] (0 for the background and for rays off the ground).
+    sigma: Vec<f32>,
+}
+
+/// One ray chunk's compositor activations.
+#[derive(Debug, Default)]
+struct RayPass {
+    /// V's input [n·S, 2] and activations.
+    v_in: Vec<f32>,
+    v: Activations,
+    world: Vec<f32>,
+    gap: Vec<f32>,
+    weights: Vec<f32>,
+    lit: Vec<f32>,
+    /// Colours after the shadows [n, S, 3].
+    colors: Vec<f32>,
+}
+
+/// What the forward keeps for the backward.
+#[derive(Debug, Default)]
+struct Saved {
+    fields: Vec<FieldPass>,
+    rays: Vec<RayPass>,
+}
+
+/// Where the rays come from: inside the op's third input (when they need gradients: the
+/// input is [coords | shadow lines | shift] flattened), or held by the op with only the
+/// coordinates as its third input (no copies).
+#[derive(Debug)]
+pub enum RayInputs {
+    Packed {
+        on_ground: Option<Vec<f32>>,
+    },
+    Held {
+        lines: Option<Tensor>,
+        on_ground: Option<Vec<f32>>,
+        shift: Tensor,
+    },
+}
+
+/// The op: see the module documentation.
+#[derive(Debug)]
+pub struct DecodeOp {
+    pub shape: DecodeShape,
+    pub rays: RayInputs,
+    saved: Mutex<Saved>,
+}
+
+/// A held tensor's f32 values (contiguous, of length `len`).
+fn held_f32<'a>(storage: &'a Storage, layout: &Layout, what: &str, len: usize) -> Result<&'a [f32]> {
+    let Storage::Cpu(cpu) = storage else {
+        candle_core::bail!("decode kernel: {what} must be on the CPU")
+    };
+    let v = storage_f32(cpu, layout, what)?;
+    if v.len() != len {
+        candle_core::bail!("decode kernel: {what} have the wrong length");
+    }
+    Ok(v)
+}
+
+fn storage_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
+    let CpuStorage::F32(v) = s else {
+        candle_core::bail!("decode kernel: {what} must be f32")
+    };
+    let Some((a, b)) = l.contiguous_offsets() else {
+        candle_core::bail!("decode kernel: {what} must be contiguous")
+    };
+    Ok(&v[a..b])
+}
+
+/// Unit ranges of the ray passes: (scene, first ray, rays).
+fn ray_units(shape: &DecodeShape) -> Vec<(usize, usize, usize)> {
+    let mut units = Vec::new();
+    for b in 0..shape.scenes {
+        let mut r0 = 0;
+        while r0 < shape.rays {
+            let n = RAY_CHUNK.min(shape.rays - r0);
+            units.push((b, r0, n));
+            r0 += n;
+        }
+    }
+    units
+}
+
+impl DecodeOp {
+    pub fn new(shape: DecodeShape, rays: RayInputs) -> DecodeOp {
+        DecodeOp {
+            shape,
+            rays,
+            saved: Mutex::new(Saved::default()),
+        }
+    }
+
+    /// Length of the packed ray input (coords, lines, shift).
+    pub fn packed_len(&self) -> (usize, usize, usize) {
+        let sh = &self.shape;
+        let coords = sh.scenes * sh.fields * sh.rays * sh.in_dim;
+        let lines = if sh.shadow_lines { coords } else { 0 };
+        (coords, lines, sh.scenes * sh.rays * sh.fields)
+    }
+
+    /// Runs `f` on the rays: `input` is the op's third input.
+    fn with_rays<T>(&self, input: &[f32], f: impl FnOnce(&Rays) -> Result<T>) -> Result<T> {
+        let (nc, nl, ns) = self.packed_len();
+        match &self.rays {
+            RayInputs::Packed { on_ground } => {
+                if input.len() != nc + nl + ns {
+                    candle_core::bail!("decode kernel: packed rays have the wrong length");
+                }
+                f(&Rays {
+                    coords: &input[..nc],
+                    lines: (nl > 0).then(|| &input[nc..nc + nl]),
+                    on_ground: on_ground.as_deref(),
+                    shift: &input[nc + nl..],
+                })
+            }
+            RayInputs::Held {
+                lines,
+                on_ground,
+                shift,
+            } => {
+                let line_guard = lines.as_ref().map(|t| t.storage_and_layout());
+                let shift_guard = shift.storage_and_layout();
+                let lines = match &line_guard {
+                    Some((g, l)) if nl > 0 => Some(held_f32(g, l, "shadow lines", nl)?),
+                    _ => None,
+                };
+                let shift = held_f32(&shift_guard.0, shift_guard.1, "shifts", ns)?;
+                if input.len() != nc {
+                    candle_core::bail!("decode kernel: ray coordinates have the wrong length");
+                }
+                f(&Rays {
+                    coords: input,
+                    lines,
+                    on_ground: on_ground.as_deref(),
+                    shift,
+                })
+            }
+        }
+    }
+
+    /// The field passes: light field and heads of field u = b·S + s on all of scene b's rays.
+    fn field_forward(&self, u: usize, fields: &[f32], shared: &[f32], rays: &Rays) -> FieldPass {
+        let sh = &self.shape;
+        let (r, s) = (sh.rays, u % sh.fields);
+        let params = &fields[u * sh.field_params..(u + 1) * sh.field_params];
+        let x = &rays.coords[u * r * sh.in_dim..(u + 1) * r * sh.in_dim];
+        let mut pass = FieldPass {
+            lfn: Activations::new(&sh.field, r),
+            color: Activations::new(&sh.shared.color, r),
+            rgb: vec![0f32; r * 3],
+            ordering: Activations::new(&sh.shared.ordering, r),
+            ..FieldPass::default()
+        };
+        let casts = s > 0 && sh.shared.shadow.is_some();
+        let lines = rays
+            .lines
+            .filter(|_| casts)
+            .map(|l| &l[u * r * sh.in_dim..(u + 1) * r * sh.in_dim]);
+        if lines.is_some() {
+            pass.shadow_lfn = Some(Activations::new(&sh.field, r));
+        }
+        let mut r0 = 0;
+        while r0 < r {
+            let n = CHUNK.min(r - r0);
+            mlp_forward(&sh.field, params, x, &mut pass.lfn, r0, n);
+            let features = pass.lfn.output();
+            mlp_forward(&sh.shared.color, shared, features, &mut pass.color, r0, n);
+            mlp_forward(&sh.shared.ordering, shared, features, &mut pass.ordering, r0, n);
+            if let (Some(lines), Some(acts)) = (lines, pass.shadow_lfn.as_mut()) {
+                mlp_forward(&sh.field, params, lines, acts, r0, n);
+            }
+            r0 += n;
+        }
+        for (c, l) in pass.rgb.iter_mut().zip(pass.color.output()) {
+            *c = sigmoid(*l);
+        }
+        pass.sigma = vec![0f32; r];
+        if let (true, Some((w, b))) = (casts, sh.shared.shadow) {
+            let f = sh.field.out_dim();
+            let w = &shared[w..w + f];
+            let bias = shared[b];
+            let features = match &pass.shadow_lfn {
+                Some(acts) => acts.output(),
+                None => pass.lfn.output(),
+            };
+            let b0 = u / sh.fields * r;
+            pass.shadow_affine = features
+                .chunks_exact(f)
+                .map(|row| row.iter().zip(w).map(|(a, b)| a * b).sum::<f32>() + bias)
+                .collect();
+            for (ri, (sigma, a)) in pass.sigma.iter_mut().zip(&pass.shadow_affine).enumerate() {
+                let ground = match (sh.shadow_lines, rays.on_ground) {
+                    (true, Some(g)) => g[b0 + ri],
+                    _ => 1.0,
+                };
+                *sigma = softplus(SHADOW_LOGIT_GAIN as f32 * a) * ground;
+            }
+        }
+        pass
+    }
+
+    /// The ray pass of rays [r0, r0 + n) of scene b: shadows, compositor, blend; writes the
+    /// output channels of those rays to `out` [n, C].
+    fn ray_forward(
+        &self,
+        (b, r0, n): (usize, usize, usize),
+        fields: &[FieldPass],
+        shared: &[f32],
+        rays: &Rays,
+        out: &mut [f32],
+    ) -> RayPass {
+        let sh = &self.shape;
+        let (s, scale) = (sh.fields, sh.scene_scale);
+        let ch = sh.channels();
+        let scene = &fields[b * s..(b + 1) * s];
+        let mut pass = RayPass {
+            v_in: vec![0f32; n * s * 2],
+            v: Activations::new(&sh.shared.v, n * s),
+            world: vec![0f32; n * s],
+            gap: vec![0f32; n * s],
+            weights: vec![0f32; n * s],
+            lit: vec![0f32; n],
+            colors: vec![0f32; n * s * 3],
+        };
+        for i in 0..n {
+            let r = r0 + i;
+            let shift = &sh_row(rays.shift, b * sh.rays + r, s);
+            let world = &mut pass.world[i * s..(i + 1) * s];
+            for (f, (w, sft)) in world.iter_mut().zip(shift.iter()).enumerate() {
+                *w = scene[f].ordering.output()[r] * scale + sft;
+            }
+            let front = world.iter().copied().fold(f32::INFINITY, f32::min);
+            for f in 0..s {
+                let gap = (world[f] - front) / scale;
+                pass.gap[i * s + f] = gap;
+                let squashed = gap / (gap * gap + 1.0).sqrt();
+                pass.v_in[(i * s + f) * 2] = scene[f].ordering.output()[r];
+                pass.v_in[(i * s + f) * 2 + 1] = -squashed;
+            }
+        }
+        mlp_forward(&sh.shared.v, shared, &pass.v_in, &mut pass.v, 0, n * s);
+        let slope = shared[sh.shared.gap_log_slope].exp();
+        let learned = pass.v.output();
+        let mut scores = vec![0f32; s];
+        for (i, row) in out.chunks_exact_mut(ch.count()).enumerate().take(n) {
+            let r = r0 + i;
+            for f in 0..s {
+                scores[f] = learned[i * s + f] - pass.gap[i * s + f] * slope;
+            }
+            let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+            let sum: f32 = scores.iter().map(|v| (v - max).exp()).sum();
+            let log_sum = sum.ln();
+            let lit = (-(1..s).map(|f| scene[f].sigma[r]).sum::<f32>()).exp();
+            pass.lit[i] = lit;
+            let mut rgb = [0f32; 3];
+            for f in 0..s {
+                let log_w = scores[f] - max - log_sum;
+                let w = log_w.exp();
+                pass.weights[i * s + f] = w;
+                row[ch.log_weights() + f] = log_w;
+                row[ch.weights() + f] = w;
+                row[ch.ordering() + f] = pass.world[i * s + f];
+                row[ch.shadow() + f] = if f == 0 { 0.0 } else { scene[f].sigma[r] };
+                for c in 0..3 {
+                    let mut color = scene[f].rgb[r * 3 + c];
+                    if f == 0 {
+                        color *= lit;
+                    }
+                    pass.colors[(i * s + f) * 3 + c] = color;
+                    row[ch.colors() + f * 3 + c] = color;
+                    rgb[c] += w * color;
+                }
+            }
+            row[..3].copy_from_slice(&rgb);
+        }
+        pass
+    }
+}
+
+fn sh_row(v: &[f32], row: usize, s: usize) -> &[f32] {
+    &v[row * s..(row + 1) * s]
+}
+
+/// Splits `buf` into consecutive mutable pieces of the given lengths.
+fn split_lengths<'a>(mut buf: &'a mut [f32], lengths: &[usize]) -> Vec<&'a mut [f32]> {
+    let mut pieces = Vec::with_capacity(lengths.len());
+    for &len in lengths {
+        let (head, tail) = std::mem::take(&mut buf).split_at_mut(len);
+        pieces.push(head);
+        buf = tail;
+    }
+    pieces
+}
+
+/// Per ray and field, the gradients the ray pass hands to the field pass.
+#[derive(Debug, Default, Clone)]
+struct RayGrads {
+    /// dL/d(field colour before the shadows) [n, S, 3].
+    color: Vec<f32>,
+    /// dL/d(ordering head output) [n, S].
+    ordering: Vec<f32>,
+    /// dL/dσ [n, S].
+    sigma: Vec<f32>,
+    /// dL/d(shift) [n, S].
+    shift: Vec<f32>,
+    /// This unit's share of the shared parameters' gradient (V and the gap slope).
+    shared: Vec<f32>,
+}
+
+impl CustomOp3 for DecodeOp {
+    fn name(&self) -> &'static str {
+        "colf-decode"
+    }
+
+    fn cpu_fwd(
+        &self,
+        fs: &CpuStorage,
+        fl: &Layout,
+        ss: &CpuStorage,
+        sl: &Layout,
+        rs: &CpuStorage,
+        rl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let sh = &self.shape;
+        let fields = storage_f32(fs, fl, "field parameters")?;
+        let shared = storage_f32(ss, sl, "shared parameters")?;
+        if fields.len() != sh.scenes * sh.fields * sh.field_params
+            || shared.len() != sh.shared.len
+        {
+            candle_core::bail!("decode kernel: parameters do not match the model's layout");
+        }
+        let ch = sh.channels().count();
+        let mut out = vec![0f32; sh.scenes * sh.rays * ch];
+        let saved = self.with_rays(storage_f32(rs, rl, "rays")?, |rays| {
+            let passes: Vec<FieldPass> = (0..sh.scenes * sh.fields)
+                .into_par_iter()
+                .map(|u| self.field_forward(u, fields, shared, rays))
+                .collect();
+            let units = ray_units(sh);
+            let lengths: Vec<usize> = units.iter().map(|u| u.2 * ch).collect();
+            let ray_passes: Vec<RayPass> = split_lengths(&mut out, &lengths)
+                .into_par_iter()
+                .zip(units.par_iter())
+                .map(|(piece, unit)| self.ray_forward(*unit, &passes, shared, rays, piece))
+                .collect();
+            Ok(Saved {
+                fields: passes,
+                rays: ray_passes,
+            })
+        })?;
+        *self.saved.lock().expect("decode kernel state") = saved;
+        Ok((
+            CpuStorage::F32(out),
+            Shape::from((sh.scenes, sh.rays, ch)),
+        ))
+    }
+
+    fn bwd(
+        &self,
+        field_params: &Tensor,
+        shared_params: &Tensor,
+        ray_input: &Tensor,
+        _res: &Tensor,
+        grad_res: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let sh = &self.shape;
+        let grad_res = grad_res.contiguous()?;
+        let (g_guard, g_layout) = grad_res.storage_and_layout();
+        let (f_guard, f_layout) = field_params.storage_and_layout();
+        let (s_guard, s_layout) = shared_params.storage_and_layout();
+        let (r_guard, r_layout) = ray_input.storage_and_layout();
+        let ch = sh.channels().count();
+        let grad_out = held_f32(&g_guard, g_layout, "output gradient", sh.scenes * sh.rays * ch)?;
+        let fields = held_f32(
+            &f_guard,
+            f_layout,
+            "field parameters",
+            sh.scenes * sh.fields * sh.field_params,
+        )?;
+        let shared = held_f32(&s_guard, s_layout, "shared parameters", sh.shared.len)?;
+        let Storage::Cpu(r_cpu) = &*r_guard else {
+            candle_core::bail!("decode kernel: rays must be on the CPU")
+        };
+        let ray_data = storage_f32(r_cpu, r_layout, "rays")?;
+        let want_rays = matches!(self.rays, RayInputs::Packed { .. });
+        let saved = self.saved.lock().expect("decode kernel state");
+        if saved.fields.len() != sh.scenes * sh.fields {
+            candle_core::bail!("decode kernel: backward without a forward");
+        }
+        let (d_fields, d_shared, d_rays) = self.with_rays(ray_data, |rays| {
+            Ok(self.backward(&saved, fields, shared, rays, grad_out, want_rays))
+        })?;
+        drop(saved);
+        let dev = field_params.device();
+        let d_fields = Tensor::from_vec(d_fields, field_params.shape(), dev)?;
+        let d_shared = Tensor::from_vec(d_shared, shared_params.shape(), dev)?;
+        let d_rays = match d_rays {
+            Some(packed) => Some(Tensor::from_vec(packed, ray_input.shape(), dev)?),
+            None => None,
+        };
+        Ok((Some(d_fields), Some(d_shared), d_rays))
+    }
+}
+
+impl DecodeOp {
+    /// The whole backward: gradients of the field parameters, the shared parameters and (with
+    /// `want_rays`) the packed rays.
+    fn backward(
+        &self,
+        saved: &Saved,
+        fields: &[f32],
+        shared: &[f32],
+        rays: &Rays,
+        grad_out: &[f32],
+        want_rays: bool,
+    ) -> (Vec<f32>, Vec<f32>, Option<Vec<f32>>) {
+        let sh = &self.shape;
+        // 1. Ray passes in reverse: blend, shadows, compositor.
+        let units = ray_units(sh);
+        let ray_grads: Vec<RayGrads> = units
+            .par_iter()
+            .zip(saved.rays.par_iter())
+            .map(|(unit, pass)| self.ray_backward(*unit, pass, &saved.fields, shared, grad_out))
+            .collect();
+        // Per field the rows of dL/d(colour, ordering, σ), field-major [B·S, R, ·].
+        let (b_n, s_n, r_n) = (sh.scenes, sh.fields, sh.rays);
+        let mut d_color = vec![0f32; b_n * s_n * r_n * 3];
+        let mut d_ordering = vec![0f32; b_n * s_n * r_n];
+        let mut d_sigma = vec![0f32; b_n * s_n * r_n];
+        let mut d_shift = vec![0f32; if want_rays { b_n * r_n * s_n } else { 0 }];
+        for ((b, r0, n), g) in units.iter().zip(&ray_grads) {
+            for i in 0..*n {
+                let r = r0 + i;
+                for f in 0..s_n {
+                    let row = (b * s_n + f) * r_n + r;
+                    d_color[row * 3..row * 3 + 3]
+                        .copy_from_slice(&g.color[(i * s_n + f) * 3..(i * s_n + f) * 3 + 3]);
+                    d_ordering[row] = g.ordering[i * s_n + f];
+                    d_sigma[row] = g.sigma[i * s_n + f];
+                }
+                if want_rays {
+                    let at = (b * r_n + r) * s_n;
+                    d_shift[at..at + s_n].copy_from_slice(&g.shift[i * s_n..(i + 1) * s_n]);
+                }
+            }
+        }
+        // 2. Field passes in reverse: heads, light fields, down to the generated parameters.
+        let (nc, nl, _) = self.packed_len();
+        let mut d_fields = vec![0f32; fields.len()];
+        let mut d_coords = vec![0f32; if want_rays { nc } else { 0 }];
+        let mut d_lines = vec![0f32; if want_rays { nl } else { 0 }];
+        let per_field_input = r_n * sh.in_dim;
+        let coord_pieces: Vec<Option<&mut [f32]>> = if want_rays {
+            d_coords.chunks_mut(per_field_input).map(Some).collect()
+        } else {
+            (0..b_n * s_n).map(|_| None).collect()
+        };
+        let line_pieces: Vec<Option<&mut [f32]>> = if want_rays && nl > 0 {
+            d_lines.chunks_mut(per_field_input).map(Some).collect()
+        } else {
+            (0..b_n * s_n).map(|_| None).collect()
+        };
+        let field_shared: Vec<Vec<f32>> = d_fields
+            .par_chunks_mut(sh.field_params)
+            .zip(coord_pieces)
+            .zip(line_pieces)
+            .enumerate()
+            .map(|(u, ((d_params, d_x), d_l))| {
+                let grads = FieldGrads {
+                    color: &d_color[u * r_n * 3..(u + 1) * r_n * 3],
+                    ordering: &d_ordering[u * r_n..(u + 1) * r_n],
+                    sigma: &d_sigma[u * r_n..(u + 1) * r_n],
+                };
+                self.field_backward(
+                    u,
+                    &saved.fields[u],
+                    fields,
+                    shared,
+                    rays,
+                    grads,
+                    d_params,
+                    d_x,
+                    d_l,
+                )
+            })
+            .collect();
+        // 3. The shared parameters' gradient: every unit's share, summed in unit order.
+        let mut d_shared = vec![0f32; shared.len()];
+        for part in field_shared
+            .iter()
+            .chain(ray_grads.iter().map(|g| &g.shared))
+        {
+            for (d, v) in d_shared.iter_mut().zip(part) {
+                *d += v;
+            }
+        }
+        let d_rays = want_rays.then(|| {
+            let mut packed = d_coords;
+            packed.extend(d_lines);
+            packed.extend(d_shift);
+            packed
+        });
+        (d_fields, d_shared, d_rays)
+    }
+}
+
+/// dL/d(colour, ordering, σ) of one field's rays.
+struct FieldGrads<'a> {
+    color: &'a [f32],
+    ordering: &'a [f32],
+    sigma: &'a [f32],
+}
+
+impl DecodeOp {
+    /// The backward of [`DecodeOp::ray_forward`] for one ray unit.
+    fn ray_backward(
+        &self,
+        (b, r0, n): (usize, usize, usize),
+        pass: &RayPass,
+        fields: &[FieldPass],
+        shared: &[f32],
+        grad_out: &[f32],
+    ) -> RayGrads {
+        let sh = &self.shape;
+        let (s, scale) = (sh.fields, sh.scene_scale);
+        let ch = sh.channels();
+        let scene = &fields[b * s..(b + 1) * s];
+        let slope = shared[sh.shared.gap_log_slope].exp();
+        let mut out = RayGrads {
+            color: vec![0f32; n * s * 3],
+            ordering: vec![0f32; n * s],
+            sigma: vec![0f32; n * s],
+            shift: vec![0f32; n * s],
+            shared: vec![0f32; shared.len()],
+        };
+        // 1. Blend and softmax: dL/d(score) per ray and field, the colours' gradients.
+        let mut d_score = vec![0f32; n * s];
+        let mut d_gap = vec![0f32; n * s];
+        let mut d_slope = 0f32;
+        let mut d_w = vec![0f32; s];
+        for i in 0..n {
+            let r = r0 + i;
+            let g = &grad_out[(b * sh.rays + r) * ch.count()..(b * sh.rays + r + 1) * ch.count()];
+            let w = &pass.weights[i * s..(i + 1) * s];
+            let colors = &pass.colors[i * s * 3..(i + 1) * s * 3];
+            let lit = pass.lit[i];
+            let mut d_lit = 0f32;
+            for f in 0..s {
+                let mut dw = g[ch.weights() + f];
+                for c in 0..3 {
+                    dw += g[c] * colors[f * 3 + c];
+                    // dL/d(colour after the shadows), then before them.
+                    let d_shaded = w[f] * g[c] + g[ch.colors() + f * 3 + c];
+                    if f == 0 {
+                        out.color[(i * s) * 3 + c] = d_shaded * lit;
+                        d_lit += d_shaded * scene[0].rgb[r * 3 + c];
+                    } else {
+                        out.color[(i * s + f) * 3 + c] = d_shaded;
+                    }
+                }
+                d_w[f] = dw;
+            }
+            // σ_f lowers lit = exp(−Σσ); the σ output channel adds its own gradient.
+            for f in 1..s {
+                out.sigma[i * s + f] = -lit * d_lit + g[ch.shadow() + f];
+            }
+            let g_log_sum: f32 = g[ch.log_weights()..ch.log_weights() + s].iter().sum();
+            let w_dot: f32 = w.iter().zip(&d_w).map(|(a, b)| a * b).sum();
+            for f in 0..s {
+                let ds = g[ch.log_weights() + f] - w[f] * g_log_sum + w[f] * (d_w[f] - w_dot);
+                d_score[i * s + f] = ds;
+                // score = learned − gap·slope.
+                d_gap[i * s + f] = -ds * slope;
+                d_slope -= ds * pass.gap[i * s + f] * slope;
+            }
+        }
+        // 2. V's backward: dL/d(V's input) [n·S, 2] and V's parameter gradients.
+        let mut d_v_in = vec![0f32; n * s * 2];
+        let mut scratch = Scratch::new(sh.shared.v.widest(), n * s);
+        mlp_backward(
+            &sh.shared.v,
+            shared,
+            &pass.v_in,
+            &pass.v,
+            0,
+            n * s,
+            &d_score,
+            &mut out.shared,
+            Some(&mut d_v_in),
+            &mut scratch,
+        );
+        out.shared[sh.shared.gap_log_slope] += d_slope;
+        // 3. Gaps, the front and the world orderings, down to the heads' ordering values.
+        for i in 0..n {
+            let world = &pass.world[i * s..(i + 1) * s];
+            let g = &grad_out[(b * sh.rays + r0 + i) * ch.count()..];
+            let front = world.iter().copied().fold(f32::INFINITY, f32::min);
+            let mut d_world = vec![0f32; s];
+            let mut d_front = 0f32;
+            for f in 0..s {
+                let gap = pass.gap[i * s + f];
+                // squashed = gap / √(1 + gap²), fed to V negated.
+                let d_squashed = -d_v_in[(i * s + f) * 2 + 1];
+                let dg = d_gap[i * s + f] + d_squashed / (1.0 + gap * gap).powf(1.5);
+                d_world[f] += dg / scale;
+                d_front -= dg / scale;
+            }
+            // The minimum passes its gradient to every field that attains it (as candle's).
+            for f in 0..s {
+                if world[f] == front {
+                    d_world[f] += d_front;
+                }
+            }
+            for f in 0..s {
+                let dw = d_world[f] + g[ch.ordering() + f];
+                out.ordering[i * s + f] = dw * scale + d_v_in[(i * s + f) * 2];
+                out.shift[i * s + f] = dw;
+            }
+        }
+        out
+    }
+
+    /// The backward of [`DecodeOp::field_forward`] for field u: its generated parameters'
+    /// gradient into `d_params`, the rays' into `d_x` / `d_lines` when given; returns the
+    /// field's share of the shared parameters' gradient.
+    #[allow(clippy::too_many_arguments)]
+    fn field_backward(
+        &self,
+        u: usize,
+        pass: &FieldPass,
+        fields: &[f32],
+        shared: &[f32],
+        rays: &Rays,
+        grads: FieldGrads,
+        d_params: &mut [f32],
+        mut d_x: Option<&mut [f32]>,
+        mut d_lines: Option<&mut [f32]>,
+    ) -> Vec<f32> {
+        let sh = &self.shape;
+        let (r, s) = (sh.rays, u % sh.fields);
+        let f_dim = sh.field.out_dim();
+        let params = &fields[u * sh.field_params..(u + 1) * sh.field_params];
+        let x = &rays.coords[u * r * sh.in_dim..(u + 1) * r * sh.in_dim];
+        let mut d_shared = vec![0f32; shared.len()];
+        let widest = sh
+            .field
+            .widest()
+            .max(sh.shared.color.widest())
+            .max(sh.shared.ordering.widest());
+        let mut scratch = Scratch::new(widest, CHUNK);
+        let mut d_features = vec![0f32; CHUNK * f_dim];
+        let mut d_head = vec![0f32; CHUNK * f_dim];
+        let mut g_color = vec![0f32; CHUNK * 3];
+        let casts = s > 0 && sh.shared.shadow.is_some();
+        let b0 = u / sh.fields * r;
+        let lines = rays
+            .lines
+            .filter(|_| casts)
+            .map(|l| &l[u * r * sh.in_dim..(u + 1) * r * sh.in_dim]);
+        let mut g_affine = vec![0f32; CHUNK];
+        let mut r0 = 0;
+        while r0 < r {
+            let n = CHUNK.min(r - r0);
+            let features = pass.lfn.output();
+            // Colour head: through the sigmoid.
+            for (i, g) in g_color[..n * 3].iter_mut().enumerate() {
+                let c = pass.rgb[r0 * 3 + i];
+                *g = grads.color[r0 * 3 + i] * c * (1.0 - c);
+            }
+            mlp_backward(
+                &sh.shared.color,
+                shared,
+                features,
+                &pass.color,
+                r0,
+                n,
+                &g_color,
+                &mut d_shared,
+                Some(&mut d_features),
+                &mut scratch,
+            );
+            mlp_backward(
+                &sh.shared.ordering,
+                shared,
+                features,
+                &pass.ordering,
+                r0,
+                n,
+                &grads.ordering[r0..r0 + n],
+                &mut d_shared,
+                Some(&mut d_head),
+                &mut scratch,
+            );
+            for (a, b) in d_features[..n * f_dim].iter_mut().zip(&d_head[..n * f_dim]) {
+                *a += b;
+            }
+            // Shadow head: σ = softplus(g·(w·f + b))·ground.
+            let shadow_features = if let (true, Some((w, bias))) = (casts, sh.shared.shadow) {
+                let gain = SHADOW_LOGIT_GAIN as f32;
+                for i in 0..n {
+                    let ground = match (sh.shadow_lines, rays.on_ground) {
+                        (true, Some(g)) => g[b0 + r0 + i],
+                        _ => 1.0,
+                    };
+                    let a = pass.shadow_affine[r0 + i];
+                    g_affine[i] = grads.sigma[r0 + i] * ground * gain * sigmoid(gain * a);
+                }
+                let source = match &pass.shadow_lfn {
+                    Some(acts) => acts.output(),
+                    None => features,
+                };
+                for i in 0..n {
+                    let ga = g_affine[i];
+                    d_shared[bias] += ga;
+                    let row = &source[(r0 + i) * f_dim..(r0 + i + 1) * f_dim];
+                    for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(row) {
+                        *d += ga * v;
+                    }
+                }
+                let w = &shared[w..w + f_dim];
+                if pass.shadow_lfn.is_some() {
+                    // The shadow line's own light-field pass receives it.
+                    for i in 0..n {
+                        for (d, wv) in d_head[i * f_dim..(i + 1) * f_dim].iter_mut().zip(w) {
+                            *d = g_affine[i] * wv;
+                        }
+                    }
+                    true
+                } else {
+                    for i in 0..n {
+                        for (d, wv) in d_features[i * f_dim..(i + 1) * f_dim].iter_mut().zip(w) {
+                            *d += g_affine[i] * wv;
+                        }
+                    }
+                    false
+                }
+            } else {
+                false
+            };
+            // The light field on the ray.
+            mlp_backward(
+                &sh.field,
+                params,
+                x,
+                &pass.lfn,
+                r0,
+                n,
+                &d_features,
+                d_params,
+                d_x.as_deref_mut().map(|d| &mut d[r0 * sh.in_dim..]),
+                &mut scratch,
+            );
+            // …and on its shadow line.
+            if let (true, Some(lines), Some(acts)) = (shadow_features, lines, &pass.shadow_lfn) {
+                mlp_backward(
+                    &sh.field,
+                    params,
+                    lines,
+                    acts,
+                    r0,
+                    n,
+                    &d_head,
+                    d_params,
+                    d_lines.as_deref_mut().map(|d| &mut d[r0 * sh.in_dim..]),
+                    &mut scratch,
+                );
+            }
+            r0 += n;
+        }
+        d_shared
+    }
+}
+
+/// [`crate::model::ColfNet::decode`] through the kernel: packs the parameters and rays, runs
+/// the op, and narrows its output into a `Decoded`.
+pub fn decode(
+    cfg: &Config,
+    lf: &LightFieldDecoder,
+    fields: &SlotWeights,
+    rays: &RayBatch,
+) -> Result<Decoded> {
+    let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
+    let shape = DecodeShape::new(cfg, b, s, r);
+    // The generated parameters, per field [W₀ | b₀ | W₁ | b₁ | …].
+    let mut pieces = Vec::with_capacity(2 * fields.layers.len());
+    for layer in &fields.layers {
+        pieces.push(layer.weight.reshape((b * s, ()))?);
+        pieces.push(layer.bias.reshape((b * s, ()))?);
+    }
+    let field_params = Tensor::cat(&pieces, 1)?;
+    let mut shared = lf.heads.kernel_parameters();
+    shared.extend(lf.compositor.kernel_parameters());
+    let shared = shared
+        .iter()
+        .map(|t| t.flatten_all())
+        .collect::<Result<Vec<_>>>()?;
+    let shared = Tensor::cat(&shared, 0)?;
+    if shared.elem_count() != shape.shared.len || field_params.dim(1)? != shape.field_params {
+        candle_core::bail!("decode kernel: the model's parameters do not match its config");
+    }
+    // The rays: packed into the op's input when they need gradients, else held by the op.
+    let lines = rays
+        .shadow_lines
+        .as_ref()
+        .filter(|_| shape.shadow_lines)
+        .map(|(l, _)| l);
+    let on_ground = match (&rays.shadow_lines, shape.shadow_lines) {
+        (Some((_, g)), true) => Some(g.flatten_all()?.to_vec1::<f32>()?),
+        _ => None,
+    };
+    let tracked = rays.coords.track_op()
+        || rays.shift.track_op()
+        || lines.is_some_and(|l| l.track_op());
+    let (ray_input, ray_inputs) = if tracked {
+        let mut packed = vec![rays.coords.flatten_all()?];
+        if let Some(l) = lines {
+            packed.push(l.flatten_all()?);
+        }
+        packed.push(rays.shift.flatten_all()?);
+        (Tensor::cat(&packed, 0)?, RayInputs::Packed { on_ground })
+    } else {
+        (
+            rays.coords.flatten_all()?,
+            RayInputs::Held {
+                lines: lines.map(|l| l.contiguous()).transpose()?,
+                on_ground,
+                shift: rays.shift.contiguous()?,
+            },
+        )
+    };
+    let ch = shape.channels();
+    let has_shadow = cfg.shadow_head;
+    let out = field_params.apply_op3(
+        &shared,
+        &ray_input.contiguous()?,
+        DecodeOp::new(shape, ray_inputs),
+    )?;
+    let colors = out
+        .narrow(2, ch.colors(), 3 * s)?
+        .contiguous()?
+        .reshape((b, r, s, 3))?;
+    Ok(Decoded {
+        rgb: out.narrow(2, Channels::RGB, 3)?,
+        weights: out.narrow(2, ch.weights(), s)?,
+        log_weights: out.narrow(2, ch.log_weights(), s)?,
+        colors,
+        ordering: out.narrow(2, ch.ordering(), s)?,
+        shadow: has_shadow
+            .then(|| out.narrow(2, ch.shadow(), s))
+            .transpose()?,
+    })
+}

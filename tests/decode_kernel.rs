@@ -1,0 +1,343 @@
+//! The fused decoder (`src/model/decode_kernel.rs`) against the composition of candle ops it
+//! replaces (`ColfNet::decode_reference`, differentiated by candle's autograd): the same values
+//! and the same gradients — of every model parameter, the slot latents and, when they are
+//! differentiable, the rays — for every config knob in use, K = 0, 1, 7 and 60, and extreme
+//! rays; and the same bytes whatever the thread count.
+
+use candle_core::{DType, Device, Tensor, Var};
+use colf::model::{Colf, Config, RayBatch, SceneRays};
+use glam::{DMat4, DQuat, DVec3};
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, StandardNormal};
+
+/// A small config with every knob of the default model on.
+fn base() -> Config {
+    Config {
+        preset: "test".into(),
+        encoder_size: 16,
+        encoder_channels: 8,
+        encoder_channels_low: 8,
+        feature_dim: 8,
+        slot_dim: 12,
+        slot_mlp_hidden: 16,
+        lfn_hidden: 24,
+        lfn_hidden_layers: 2,
+        lfn_features: 10,
+        ray_fourier_freqs: 2,
+        hypernet_hidden: 16,
+        head_hidden: 12,
+        head_hidden_layers: 1,
+        compositor_hidden: 8,
+        compositor_hidden_layers: 1,
+        scene_scale: 8.0,
+        background_reader: true,
+        hypernet_rms_norm: true,
+        attention_frames: true,
+        fg_locality: 2.0,
+        shadow_head: true,
+        shadow_light: Some([30.0, 55.0]),
+        ..Config::small()
+    }
+}
+
+fn normal(rng: &mut StdRng, n: usize, scale: f32) -> Vec<f32> {
+    (0..n)
+        .map(|_| {
+            let v: f64 = StandardNormal.sample(rng);
+            scale * v as f32
+        })
+        .collect::<Vec<f32>>()
+}
+
+/// A model whose every parameter is perturbed away from its initialisation (where the shadow
+/// head's weight is 0 and the ordering head's output near 0, which would hide errors).
+fn model(cfg: &Config, seed: u64) -> Colf {
+    let mut colf = Colf::init(cfg, seed).unwrap();
+    let mut rng = StdRng::seed_from_u64(seed + 100);
+    let names: Vec<(String, Tensor)> = colf
+        .parameters()
+        .iter()
+        .map(|(n, t)| (n.clone(), t.clone()))
+        .collect();
+    for (name, t) in names {
+        let scale = if name.starts_with("heads.") || name.starts_with("compositor.") {
+            0.3
+        } else {
+            0.02
+        };
+        let noise = Tensor::from_vec(normal(&mut rng, t.elem_count(), scale), t.shape(), &Device::Cpu)
+            .unwrap();
+        colf = colf.with_tensor(&name, (t + noise).unwrap()).unwrap();
+    }
+    colf.into_trainable().unwrap()
+}
+
+/// Rays of one scene: `r` rays from cameras around the origin (a few far away when `extreme`),
+/// and K slot frames (rotated and translated; far away when `extreme`).
+fn scene(rng: &mut StdRng, k: usize, r: usize, extreme: bool) -> (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>) {
+    let frames = (0..k)
+        .map(|i| {
+            let far = if extreme && i % 2 == 1 { 1e4 } else { 1.0 };
+            let t = DVec3::new(
+                rng.random_range(-3.0..3.0) * far,
+                rng.random_range(-3.0..3.0),
+                rng.random_range(0.0..1.0),
+            );
+            DMat4::from_rotation_translation(DQuat::from_rotation_z(rng.random_range(0.0..6.0)), t)
+        })
+        .collect();
+    let (mut origins, mut dirs) = (Vec::new(), Vec::new());
+    for i in 0..r {
+        let az: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        let dist = if extreme && i % 5 == 0 { 3e4 } else { 12.0 };
+        let eye = DVec3::new(az.cos() * dist * 0.77, az.sin() * dist * 0.77, dist * 0.64);
+        let look = DVec3::new(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), 0.0);
+        origins.push(eye);
+        dirs.push(look - eye);
+    }
+    (frames, origins, dirs)
+}
+
+struct Case {
+    cfg: Config,
+    k: usize,
+    scenes: usize,
+    rays: usize,
+    extreme: bool,
+    /// Make the rays differentiable (as refinement with moving frames does).
+    ray_grads: bool,
+}
+
+/// Every output of a decode, and the gradients of a loss on all of them.
+struct Run {
+    outputs: Vec<(String, Tensor)>,
+    grads: Vec<(String, Tensor)>,
+}
+
+fn run(case: &Case, reference: bool) -> Run {
+    let colf = model(&case.cfg, 7);
+    let mut net = colf.model().clone();
+    net.reference_decoder = reference;
+    let (b, k, d) = (case.scenes, case.k, case.cfg.slot_dim);
+    let mut rng = StdRng::seed_from_u64(11);
+    let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
+    let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
+    let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
+    let scenes: Vec<_> = (0..b)
+        .map(|_| scene(&mut rng, k, case.rays, case.extreme))
+        .collect();
+    let scene_rays: Vec<SceneRays> = scenes
+        .iter()
+        .map(|(f, o, dir)| SceneRays {
+            slot_to_world: f,
+            origins: o,
+            dirs: dir,
+        })
+        .collect();
+    let mut rays = RayBatch::new(&case.cfg, &scene_rays, &Device::Cpu).unwrap();
+    let mut ray_vars = Vec::new();
+    if case.ray_grads {
+        let coords = Var::from_tensor(&rays.coords).unwrap();
+        let shift = Var::from_tensor(&rays.shift).unwrap();
+        rays.coords = coords.as_tensor().clone();
+        rays.shift = shift.as_tensor().clone();
+        ray_vars.push(("rays.coords".to_string(), coords));
+        ray_vars.push(("rays.shift".to_string(), shift));
+        if let Some((lines, _)) = rays.shadow_lines.as_mut() {
+            let v = Var::from_tensor(lines).unwrap();
+            *lines = v.as_tensor().clone();
+            ray_vars.push(("rays.shadow_lines".to_string(), v));
+        }
+    }
+    let out = net.decode(&fields, &rays).unwrap();
+    let mut outputs = vec![
+        ("rgb".to_string(), out.rgb.clone()),
+        ("weights".to_string(), out.weights.clone()),
+        ("log_weights".to_string(), out.log_weights.clone()),
+        ("colors".to_string(), out.colors.clone()),
+        ("ordering".to_string(), out.ordering.clone()),
+    ];
+    if let Some(s) = &out.shadow {
+        outputs.push(("shadow".to_string(), s.clone()));
+    }
+    // A loss that reads every output with fixed random weights.
+    let mut wrng = StdRng::seed_from_u64(3);
+    let mut loss = Tensor::zeros((), DType::F32, &Device::Cpu).unwrap();
+    for (name, t) in &outputs {
+        let scale = if name == "ordering" { 0.01 } else { 1.0 };
+        let w = Tensor::from_vec(normal(&mut wrng, t.elem_count(), scale), t.shape(), &Device::Cpu)
+            .unwrap();
+        loss = (loss + (t * w).unwrap().sum_all().unwrap()).unwrap();
+    }
+    let grads = loss.backward().unwrap();
+    let mut named: Vec<(String, Var)> = colf.named_vars();
+    named.push(("latents.fg".into(), fg));
+    named.push(("latents.bg".into(), bg));
+    named.extend(ray_vars);
+    let grads = named
+        .into_iter()
+        .filter_map(|(n, v)| grads.get(v.as_tensor()).map(|g| (n, g.clone())))
+        .collect();
+    Run { outputs, grads }
+}
+
+fn norm(t: &Tensor) -> f32 {
+    t.sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt()
+}
+
+/// ‖a − b‖ / ‖b‖ (absolute below a norm of 1e-6).
+fn relative_error(a: &Tensor, b: &Tensor) -> f32 {
+    let diff = norm(&(a - b).unwrap());
+    diff / norm(b).max(1e-6)
+}
+
+fn check(case: Case) {
+    let fused = run(&case, false);
+    let reference = run(&case, true);
+    let what = format!("K = {}, {:?}", case.k, case.cfg);
+    for ((name, a), (_, b)) in fused.outputs.iter().zip(&reference.outputs) {
+        assert_eq!(a.dims(), b.dims(), "{name}");
+        // Relative, or absolute on outputs whose values are all tiny: the reference's softplus,
+        // ln(1 + e^−|x|) in f32, loses the σ of 1e-4 and below that the kernel's ln_1p keeps.
+        let scale = norm(b).max((b.elem_count() as f32).sqrt());
+        let err = norm(&(a - b).unwrap()) / scale;
+        assert!(err < 1e-5, "output {name}: error {err:e} ({what})");
+    }
+    // A parameter the kernel hands an all-zero gradient (the shadow head with K = 0) may get
+    // none from the reference: a missing gradient counts as zero.
+    let mut checked = 0;
+    let names: std::collections::BTreeSet<&String> = fused
+        .grads
+        .iter()
+        .chain(&reference.grads)
+        .map(|(n, _)| n)
+        .collect();
+    let find = |run: &Run, name: &str| run.grads.iter().find(|(n, _)| n == name).map(|(_, g)| g.clone());
+    for name in names {
+        let (a, b) = match (find(&fused, name), find(&reference, name)) {
+            (Some(a), Some(b)) => (a, b),
+            (Some(a), None) => (a.clone(), a.zeros_like().unwrap()),
+            (None, Some(b)) => (b.zeros_like().unwrap(), b),
+            (None, None) => unreachable!(),
+        };
+        let err = relative_error(&a, &b);
+        assert!(err < 1e-4, "gradient of {name}: relative error {err:e} ({what})");
+        checked += 1;
+    }
+    assert!(checked > 20, "{checked} gradients compared");
+}
+
+fn case(cfg: Config, k: usize) -> Case {
+    Case {
+        cfg,
+        k,
+        scenes: 2,
+        rays: 150,
+        extreme: false,
+        ray_grads: false,
+    }
+}
+
+#[test]
+fn default_knobs_with_k_0_1_7() {
+    for k in [0, 1, 7] {
+        check(case(base(), k));
+    }
+}
+
+#[test]
+fn sixty_slots() {
+    check(Case {
+        scenes: 1,
+        rays: 70,
+        ..case(base(), 60)
+    });
+}
+
+#[test]
+fn extreme_rays_and_frames() {
+    check(Case {
+        extreme: true,
+        ..case(base(), 7)
+    });
+}
+
+#[test]
+fn shadows_on_the_ray_without_a_light() {
+    check(case(
+        Config {
+            shadow_light: None,
+            ..base()
+        },
+        3,
+    ));
+}
+
+#[test]
+fn no_shadows_no_fourier_features_no_locality() {
+    check(case(
+        Config {
+            shadow_head: false,
+            shadow_light: None,
+            ray_fourier_freqs: 0,
+            fg_locality: 0.0,
+            attention_frames: false,
+            background_reader: false,
+            ..base()
+        },
+        4,
+    ));
+}
+
+#[test]
+fn a_static_background_and_deeper_heads() {
+    check(case(
+        Config {
+            zero_background: true,
+            static_background: true,
+            background_reader: false,
+            head_hidden_layers: 3,
+            compositor_hidden_layers: 3,
+            lfn_hidden_layers: 3,
+            ..base()
+        },
+        5,
+    ));
+}
+
+#[test]
+fn differentiable_rays_as_in_refinement() {
+    check(Case {
+        scenes: 1,
+        ray_grads: true,
+        ..case(base(), 6)
+    });
+}
+
+/// The kernel's result does not depend on the number of threads: the same bytes on 1 and 2.
+#[test]
+fn same_bytes_whatever_the_thread_count() {
+    let bytes = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let r = run(
+                &Case {
+                    rays: 300,
+                    ..case(base(), 7)
+                },
+                false,
+            );
+            r.outputs
+                .iter()
+                .chain(&r.grads)
+                .flat_map(|(_, t)| t.flatten_all().unwrap().to_vec1::<f32>().unwrap())
+                .map(f32::to_bits)
+                .collect::<Vec<u32>>()
+        })
+    };
+    assert_eq!(bytes(1), bytes(2));
+}
