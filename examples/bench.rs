@@ -318,6 +318,185 @@ fn measure_train(steps: u64) -> Result<Value> {
     )
 }
 
+/// The config of a decoder measurement: the bundled default model's, or the `paper` preset's
+/// sizes with the default model's knobs (Fourier features, shadows, locality, frames, reader).
+fn decoder_config(which: &str) -> Result<Config> {
+    let default = Colf::load(std::path::Path::new("models/default.safetensors"))?
+        .config()
+        .clone();
+    Ok(match which {
+        "default" => Config {
+            inference: None,
+            ..default
+        },
+        "paper" => {
+            let p = Config::paper();
+            Config {
+                preset: "paper".into(),
+                encoder_size: p.encoder_size,
+                encoder_first_stride: p.encoder_first_stride,
+                encoder_channels: p.encoder_channels,
+                slot_dim: p.slot_dim,
+                lfn_hidden: p.lfn_hidden,
+                lfn_features: p.lfn_features,
+                hypernet_hidden: p.hypernet_hidden,
+                head_hidden: p.head_hidden,
+                head_hidden_layers: p.head_hidden_layers,
+                compositor_hidden: p.compositor_hidden,
+                compositor_hidden_layers: p.compositor_hidden_layers,
+                inference: None,
+                ..default
+            }
+        }
+        other => bail!("unknown decoder config {other}"),
+    })
+}
+
+/// The decoder part of a training step — the rays encoded, the light fields, heads, shadows
+/// and compositor, the colour and mask losses, and the backward down to the hypernetworks'
+/// outputs — for 4 scenes × 4 views × 256 rays, K = 7, through the fused kernel or (with
+/// `reference`) candle's autograd.
+fn measure_decoder(which: &str, reference: bool, reps: usize) -> Result<Value> {
+    use candle_core::{Device, Tensor, Var};
+    use colf::model::decode_kernel::DecodeShape;
+    use colf::model::{RayBatch, SceneRays, SlotWeights};
+    let cfg = decoder_config(which)?;
+    let (b, k, r) = (4usize, 7usize, 1024usize);
+    let colf = Colf::init(&cfg, 0)?.into_trainable()?;
+    let mut net = colf.model().clone();
+    net.reference_decoder = reference;
+    let dev = Device::Cpu;
+    let d = cfg.slot_dim;
+    let fg = Tensor::from_vec(noise(b * k * d, 3), (b, k, d), &dev)?;
+    let bg = Tensor::from_vec(noise(b * d, 4), (b, d), &dev)?;
+    // The generated weights as leaves: the backward stops at the hypernetworks' outputs.
+    let prepared = net.prepare(&fg, &bg)?;
+    let mut leaves = Vec::new();
+    let layers = prepared
+        .layers
+        .iter()
+        .map(|l| {
+            let (w, bias) = (Var::from_tensor(&l.weight)?, Var::from_tensor(&l.bias)?);
+            let layer = colf::model::hypernet::GeneratedLayer {
+                weight: w.as_tensor().clone(),
+                bias: bias.as_tensor().clone(),
+            };
+            leaves.push(w);
+            leaves.push(bias);
+            Ok(layer)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let fields = SlotWeights { layers };
+    // Four views of each scene, 256 rays each, from a 64² clevr567 camera.
+    let (origins, dirs) = frame_rays(64);
+    let frames: Vec<DMat4> = (0..k)
+        .map(|i| DMat4::from_translation(DVec3::new(i as f64 - 3.0, 0.5, 0.3)))
+        .collect();
+    let pick: Vec<usize> = (0..r).map(|i| (i * 997) % origins.len()).collect();
+    let o: Vec<DVec3> = pick.iter().map(|&i| origins[i]).collect();
+    let dv: Vec<DVec3> = pick.iter().map(|&i| dirs[i]).collect();
+    let target = Tensor::from_vec(
+        noise(b * r * 3, 5).iter().map(|v| 0.5 + 0.4 * v).collect::<Vec<f32>>(),
+        (b, r, 3),
+        &dev,
+    )?;
+    let labels = Tensor::from_vec(
+        (0..b * r).map(|i| (i % (k + 1)) as u32).collect::<Vec<u32>>(),
+        (b * r, 1),
+        &dev,
+    )?;
+    let step = || -> Result<()> {
+        let scenes: Vec<SceneRays> = (0..b)
+            .map(|_| SceneRays {
+                slot_to_world: &frames,
+                origins: &o,
+                dirs: &dv,
+            })
+            .collect();
+        let rays = RayBatch::new(&cfg, &scenes, &dev)?;
+        let out = net.decode(&fields, &rays)?;
+        let mse = (&out.rgb - &target)?.sqr()?.mean_all()?;
+        let ce = out
+            .log_weights
+            .reshape((b * r, k + 1))?
+            .gather(&labels, 1)?
+            .mean_all()?
+            .neg()?;
+        let grads = (mse + (ce * 0.1)?)?.backward()?;
+        if grads.get(leaves[0].as_tensor()).is_none() {
+            bail!("no gradient reached the generated weights");
+        }
+        Ok(())
+    };
+    let (s, runs, cpu) = time_median(reps, step)?;
+    let shape = DecodeShape::new(&cfg, b, 1 + k, r);
+    let (fwd, bwd) = shape.macs(false);
+    let gflop = 2.0 * (fwd + bwd) * 1e-9;
+    let path = if reference { "autograd" } else { "fused" };
+    Ok(json!({
+        "what": format!("decoder fwd+bwd of a training step ({path}; 4 scenes x 4 views x 256 rays, K=7)"),
+        "preset": which, "slots": k, "runs": runs,
+        "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "gflops": gflop / s,
+        "gflops_per_cpu_s": gflop / cpu, "peak_mib": peak_rss_mib()
+    }))
+}
+
+/// The bundled default model's default encoding (its measured slots, tries and refinement, as
+/// `colf-encode` with no flags) of view 0 of a colf-synth scene of `size`², with the refinement
+/// through the fused decoder or (`reference`) candle's autograd. Reports wall and CPU time.
+fn measure_default_encode(size: usize, reference: bool, reps: usize) -> Result<Value> {
+    use clap::Parser;
+    let dir = tempfile::tempdir()?;
+    let synth = sibling_binary("colf-synth")?;
+    let status = std::process::Command::new(&synth)
+        .args(["--scenes", "1", "--seed", "9", "--split", "test", "-q", "--size"])
+        .arg(size.to_string())
+        .arg("--out")
+        .arg(dir.path())
+        .status()
+        .with_context(|| format!("running {}", synth.display()))?;
+    if !status.success() {
+        bail!("colf-synth failed");
+    }
+    let scene = dir.path().join("scene_00000");
+    let mut model = Colf::load(std::path::Path::new("models/default.safetensors"))?;
+    model.set_reference_decoder(reference);
+    let png = std::fs::read(scene.join("view_000.png"))?;
+    let image = colf::image_io::decode_rgb_for_encoder(
+        &png,
+        "view_000.png",
+        model.config().encoder_size as u32,
+        colf::image_io::ENCODE_FULL_RES_PIXELS,
+    )?;
+    let cameras = colf::camera::Cameras::read(&scene.join("transforms.json").to_string_lossy())?;
+    let args = colf::cli::encode::EncodeArgs::try_parse_from(["colf-encode", "view_000.png"])?;
+    let opts = colf::encode::EncodeOptions {
+        camera: Some(cameras.frames[0].clone()),
+        source: "view_000.png".into(),
+        ..args.fit.encode_options(model.config(), None, 0)
+    };
+    let (s, runs, cpu) = time_median(reps.min(3), || {
+        colf::encode::encode_image(&model, &image, &opts).map(|_| ())
+    })?;
+    let path = if reference { "autograd" } else { "fused" };
+    let inference = model.config().default_inference();
+    Ok(json!({
+        "what": format!("default encoding ({} slots, {} tries, {} refinement steps; {path})",
+                        inference.slots, inference.tries, inference.refine),
+        "preset": "default", "resolution": size, "runs": runs,
+        "ms": s * 1e3, "cpu_s": cpu, "peak_mib": peak_rss_mib()
+    }))
+}
+
+/// A program built beside this example (`target/release/NAME`).
+fn sibling_binary(name: &str) -> Result<std::path::PathBuf> {
+    let exe = std::env::current_exe()?;
+    exe.parent()
+        .and_then(|p| p.parent())
+        .map(|p| p.join(name))
+        .context("the release folder")
+}
+
 fn run_one(spec: &Value) -> Result<Value> {
     let quick = spec["quick"].as_bool().unwrap_or(false);
     let reps = if quick { 2 } else { 5 };
@@ -333,6 +512,16 @@ fn run_one(spec: &Value) -> Result<Value> {
         ),
         Some("encode") => measure_encode(spec["preset"].as_str().unwrap_or("small"), reps),
         Some("train") => measure_train(if quick { 3 } else { 10 }),
+        Some("default-encode") => measure_default_encode(
+            spec["size"].as_u64().unwrap_or(64) as usize,
+            spec["reference"].as_bool().unwrap_or(false),
+            reps,
+        ),
+        Some("decoder") => measure_decoder(
+            spec["preset"].as_str().unwrap_or("default"),
+            spec["reference"].as_bool().unwrap_or(false),
+            reps,
+        ),
         other => bail!("unknown measurement {other:?}"),
     }
 }
@@ -341,6 +530,7 @@ fn main() -> Result<()> {
     // As every colf program does (cli::run): keep freed tensor buffers instead of returning
     // them to the kernel, which is most of a training step's speed.
     colf::alloc::tune_for_tensors();
+    colf::alloc::tune_thread_pools();
     let args: Vec<String> = std::env::args().collect();
     if args.len() == 3 && args[1] == "--one" {
         let spec: Value = serde_json::from_str(&args[2])?;
@@ -354,7 +544,13 @@ fn main() -> Result<()> {
         .and_then(|i| args.get(i + 1).cloned())
         .unwrap_or_else(|| "target/bench/bench.json".into());
     let only_render = args.iter().any(|a| a == "--render-only");
+    let only_train = args.iter().any(|a| a == "--train-only");
     let mut specs = vec![json!({"kind": "matmul"})];
+    for preset in ["default", "paper"] {
+        for reference in [false, true] {
+            specs.push(json!({"kind": "decoder", "preset": preset, "reference": reference}));
+        }
+    }
     for preset in ["small", "paper"] {
         for slots in [2, 7, 60] {
             specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));

@@ -1,4 +1,4 @@
-//! Allocator tuning for tensor work.
+//! Allocator and thread-pool tuning for tensor work.
 //!
 //! candle allocates a fresh buffer for every op's result. glibc's malloc serves buffers above
 //! 128 KiB–32 MiB with `mmap` and returns freed ones to the kernel, so every op of a training
@@ -25,5 +25,21 @@ pub fn tune_for_tensors() {
         set("MALLOC_MMAP_THRESHOLD_", libc::M_MMAP_THRESHOLD, THRESHOLD);
         set("MALLOC_TRIM_THRESHOLD_", libc::M_TRIM_THRESHOLD, THRESHOLD);
         set("MALLOC_TOP_PAD_", libc::M_TOP_PAD, 64 << 20);
+    }
+}
+
+/// How long (in spin-loop iterations) an idle worker of candle's element-wise thread pool spins
+/// before it sleeps, unless the user set `CANDLE_BARRIER_POOL_SPIN_LIMIT`. candle's default,
+/// 25,000, keeps a worker spinning for about half a millisecond after every element-wise op: on
+/// two cores shared with rayon's workers (the decoder kernel, matmuls) the spinning thread took
+/// the core the working one needed, and a training step ran 2–3× slower on two threads than on
+/// one (`docs/speed.md`, "Threads").
+pub const CANDLE_SPIN_LIMIT: &str = "200";
+
+/// Sets [`CANDLE_SPIN_LIMIT`] for this process unless the environment sets it. Call before any
+/// tensor work (candle reads it when its pool starts), while the process has one thread.
+pub fn tune_thread_pools() {
+    if std::env::var_os("CANDLE_BARRIER_POOL_SPIN_LIMIT").is_none() {
+        std::env::set_var("CANDLE_BARRIER_POOL_SPIN_LIMIT", CANDLE_SPIN_LIMIT);
     }
 }

@@ -19,6 +19,7 @@ pub mod train;
 /// checkpoint) exits the same way.
 pub fn run(stage: &str, body: impl FnOnce() -> anyhow::Result<()>) -> ! {
     crate::alloc::tune_for_tensors();
+    crate::alloc::tune_thread_pools();
     let result = crate::io::install_signal_cleanup(stage).and_then(|()| body());
     match result {
         Ok(()) => std::process::exit(0),

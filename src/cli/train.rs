@@ -209,6 +209,12 @@ pub struct RunArgs {
     #[arg(long, value_name = "PREFIX=FACTOR", value_parser = parse_lr_scale)]
     pub lr_scale: Vec<(String, f64)>,
 
+    /// Decode through candle's autograd, the slow reference the fused decoder kernel is tested
+    /// against, instead of the kernel: the same function (gradients agree to 1e-4), several
+    /// times slower. For checking a run's curve, not for training.
+    #[arg(long)]
+    pub reference_decoder: bool,
+
     /// Abort after this many steps with a non-finite loss or gradient.
     #[arg(long, default_value_t = 50, value_name = "N")]
     pub max_bad_steps: u64,
@@ -522,6 +528,7 @@ impl RunArgs {
             freeze: args.freeze.clone(),
             lr_scale: args.lr_scale.clone(),
             proposals: args.proposals,
+            reference_decoder: args.reference_decoder,
         })
     }
 }

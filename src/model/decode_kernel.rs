@@ -370,10 +370,9 @@ fn dense_backward(
     let (i, o) = (layer.fan_in, layer.fan_out);
     let g = &mut g[..n * o];
     if layer.relu {
+        // A select, not a conditional store, so the loop vectorises.
         for (gv, yv) in g.iter_mut().zip(&y[..n * o]) {
-            if *yv <= 0.0 {
-                *gv = 0.0;
-            }
+            *gv = if *yv > 0.0 { *gv } else { 0.0 };
         }
     }
     // dW [in, out] += xᵀ [in, n] · g [n, out].
@@ -1380,14 +1379,16 @@ pub fn decode(
         .narrow(2, ch.colors(), 3 * s)?
         .contiguous()?
         .reshape((b, r, s, 3))?;
+    // Contiguous copies: [B, R, ≤ S] each, small beside the op, and what later ops expect.
+    let channel = |at: usize, n: usize| out.narrow(2, at, n)?.contiguous();
     Ok(Decoded {
-        rgb: out.narrow(2, Channels::RGB, 3)?,
-        weights: out.narrow(2, ch.weights(), s)?,
-        log_weights: out.narrow(2, ch.log_weights(), s)?,
+        rgb: channel(Channels::RGB, 3)?,
+        weights: channel(ch.weights(), s)?,
+        log_weights: channel(ch.log_weights(), s)?,
         colors,
-        ordering: out.narrow(2, ch.ordering(), s)?,
+        ordering: channel(ch.ordering(), s)?,
         shadow: has_shadow
-            .then(|| out.narrow(2, ch.shadow(), s))
+            .then(|| channel(ch.shadow(), s))
             .transpose()?,
     })
 }

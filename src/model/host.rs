@@ -317,6 +317,12 @@ impl Colf {
         })
     }
 
+    /// Decode through candle's autograd instead of the fused kernel (see
+    /// `ColfNet::reference_decoder`).
+    pub fn set_reference_decoder(&mut self, on: bool) {
+        self.model.reference_decoder = on;
+    }
+
     /// The trainable `Var`s sorted by name (empty unless [`Colf::into_trainable`] was called).
     pub fn named_vars(&self) -> Vec<(String, Var)> {
         let Some(vars) = &self.vars else {

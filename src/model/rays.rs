@@ -152,9 +152,56 @@ pub fn world_to_slot(slot_to_world: &[DMat4]) -> Result<Vec<DMat4>> {
         .collect()
 }
 
+/// [`RayBatch`]'s values on the host, before they become tensors.
+#[derive(Clone, Debug)]
+pub struct HostRays {
+    /// [B·S, R, in], field-major within a scene.
+    pub coords: Vec<f32>,
+    /// With `Config::shadow_light`: the shadow lines [B·S, R, in] and the on-ground flags [B, R].
+    pub shadow_lines: Option<(Vec<f32>, Vec<f32>)>,
+    /// Ordering shifts minus `base` [B, R, S].
+    pub shift: Vec<f32>,
+    /// Per ray the subtracted base shift [B·R].
+    pub base: Vec<f64>,
+    pub scenes: usize,
+    pub fields: usize,
+    pub rays: usize,
+}
+
+impl HostRays {
+    /// The batch as tensors on `dev`.
+    pub fn into_batch(self, cfg: &Config, dev: &Device) -> Result<RayBatch> {
+        let (b, s, r) = (self.scenes, self.fields, self.rays);
+        let in_dim = cfg.ray_input_dim();
+        let shadow_lines = match self.shadow_lines {
+            Some((lines, on_ground)) => Some((
+                Tensor::from_vec(lines, (b * s, r, in_dim), dev)?,
+                Tensor::from_vec(on_ground, (b, r, 1), dev)?,
+            )),
+            None => None,
+        };
+        Ok(RayBatch {
+            coords: Tensor::from_vec(self.coords, (b * s, r, in_dim), dev)?,
+            shadow_lines,
+            shift: Tensor::from_vec(self.shift, (b, r, s), dev)?,
+            base: self.base,
+            scenes: b,
+            fields: s,
+            rays: r,
+        })
+    }
+}
+
 impl RayBatch {
     /// Encodes the rays of `scenes` (all with the same K and R).
     pub fn new(cfg: &Config, scenes: &[SceneRays], dev: &Device) -> Result<RayBatch> {
+        HostRays::new(cfg, scenes)?.into_batch(cfg, dev)
+    }
+}
+
+impl HostRays {
+    /// Encodes the rays of `scenes` (all with the same K and R) on the host.
+    pub fn new(cfg: &Config, scenes: &[SceneRays]) -> Result<HostRays> {
         // 1. Sizes: every scene of a batch has the same slots and rays.
         let (b, k, r) = batch_shape(scenes)?;
         let s = 1 + k;
@@ -206,17 +253,10 @@ impl RayBatch {
                 base[bi * r + ri] = ordering_shifts(&frames, o, d, cfg.fg_locality, row);
             }
         }
-        let shadow_lines = match shadow {
-            Some((lines, on_ground)) => Some((
-                Tensor::from_vec(lines, (b * s, r, in_dim), dev)?,
-                Tensor::from_vec(on_ground, (b, r, 1), dev)?,
-            )),
-            None => None,
-        };
-        Ok(RayBatch {
-            coords: Tensor::from_vec(coords, (b * s, r, in_dim), dev)?,
-            shadow_lines,
-            shift: Tensor::from_vec(shift, (b, r, s), dev)?,
+        Ok(HostRays {
+            coords,
+            shadow_lines: shadow,
+            shift,
             base,
             scenes: b,
             fields: s,

@@ -120,6 +120,10 @@ pub struct TrainOptions {
     /// the schedule's rate (a later pair wins where prefixes overlap).
     #[serde(default)]
     pub lr_scale: Vec<(String, f64)>,
+    /// Decode through candle's autograd (`ColfNet::decode_reference`) instead of the fused
+    /// kernel: the same function, several times slower; for checking the kernel on a real run.
+    #[serde(default)]
+    pub reference_decoder: bool,
 }
 
 impl TrainOptions {
@@ -328,7 +332,8 @@ impl Trainer {
                 opts.data.display()
             );
         }
-        let colf = colf.into_trainable()?;
+        let mut colf = colf.into_trainable()?;
+        colf.set_reference_decoder(opts.reference_decoder);
         let vars = colf.named_vars();
         if let Some(prefix) = opts
             .freeze
