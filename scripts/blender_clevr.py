@@ -9,7 +9,8 @@ files to write for each view: the colour image (Cycles path tracing, a fixed see
 number of samples, no denoising, no adaptive sampling) and an object-id image (a second pass
 in which every object emits a flat grey level of its own, one sample per pixel at the pixel
 centre, no lights, no bounces, no dithering, the "Standard" view transform), which
-colf-synth decodes into the mask. After each scene it prints `colf-scene-done INDEX` on
+colf-synth decodes into the mask. A scene's `extra_scenes` (uORF's scene manipulation) are
+rendered after it, each with its own objects and lights and the scene's cameras. After each scene it prints `colf-scene-done INDEX` on
 stdout. The scene follows the CLEVR recipe: CLEVR shapes with a matte "rubber" material on a
 large grey floor, three area lights (key, fill, back).
 """
@@ -253,6 +254,9 @@ def main():
         job = json.load(f)
     for s in job["scenes"]:
         render_scene(job, s)
+        # uORF's scene manipulation: other objects and lights seen from this scene's cameras.
+        for extra in s.get("extra_scenes", []):
+            render_scene(job, dict(s, moved=None, **extra))
         print("colf-scene-done %d" % s["index"], flush=True)
 
 

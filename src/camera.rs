@@ -273,6 +273,12 @@ pub fn validate_rigid(m: &DMat4, what: &str, tolerance: f64) -> Result<()> {
 /// Rigidity tolerance for matrices read from files: loose enough for 6-digit JSON.
 pub const RIGID_TOLERANCE: f64 = 1e-3;
 
+/// uORF's horizontal focal length in units of the image width (350/320: its `Projection`).
+pub const UORF_FOCAL_X_PER_WIDTH: f64 = 350.0 / 320.0;
+/// uORF's vertical focal length in units of the image height (350/240: its images are 4:3
+/// renders, 320×240 at focal length 350, stretched to a square).
+pub const UORF_FOCAL_Y_PER_HEIGHT: f64 = 350.0 / 240.0;
+
 /// A set of frames: the content of one `transforms.json`.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct Cameras {
@@ -521,13 +527,14 @@ impl Cameras {
         Ok(opencv_to_opengl(&opencv))
     }
 
-    /// uORF intrinsics for a W×H image: fx = 1.09375·W, fy = 1.4583·H, centred.
+    /// uORF intrinsics for a W×H image (its `models/projection.py`): fx = 350/320·W,
+    /// fy = 350/240·H, centred.
     pub fn uorf_intrinsics(w: u32, h: u32) -> Intrinsics {
         Intrinsics {
             w,
             h,
-            fl_x: 1.09375 * w as f64,
-            fl_y: 1.4583 * h as f64,
+            fl_x: UORF_FOCAL_X_PER_WIDTH * w as f64,
+            fl_y: UORF_FOCAL_Y_PER_HEIGHT * h as f64,
             cx: 0.5 * w as f64,
             cy: 0.5 * h as f64,
         }

@@ -7,10 +7,12 @@
 //!   order; `ROOT` itself may be a single scene folder.
 //! - **uORF** (flat): `{idx:05}_sc{scene:04}_az{view:02}.png` images, `…_RT.txt` camera-to-world
 //!   in OpenCV axes (converted to our OpenGL axes), optional `…_mask.png`; intrinsics
-//!   fx = 1.09375·W, fy = 1.4583·H, centred. Views of a scene are ordered by `az`. Mask grey
-//!   levels (RGB masks are turned grey as PIL's `convert("L")` does) map to ids as in uORF's
-//!   loader: in each view the second-smallest level is the background (id 0); every other level
-//!   seen in the scene gets an id 1, 2, … in increasing grey order, the same in every view.
+//!   fx = 350/320·W, fy = 350/240·H, centred (uORF's `Projection`). Views of a scene are
+//!   ordered by `az`. Mask grey levels (RGB masks are turned grey as PIL's `convert("L")`
+//!   does) map to ids as in uORF's loader: in each view the second-smallest level is the
+//!   background (id 0); every other level seen in the scene gets an id 1, 2, … in increasing
+//!   grey order, the same in every view. Other files of the layout (`_azi_rot.txt`, uORF's
+//!   scene-manipulation images and masks) are not read.
 //!
 //! Images are returned as **sRGB-encoded values in [0, 1]** (8-bit value / 255), exactly as
 //! stored — not linear light: that is what the model trains on and what the metrics compare.

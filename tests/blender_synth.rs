@@ -10,6 +10,8 @@ use colf::synth::scene::Object;
 use glam::DVec3;
 use std::path::Path;
 
+mod common;
+
 fn synth() -> Command {
     Command::cargo_bin("colf-synth").unwrap()
 }
@@ -126,9 +128,10 @@ fn blender_masks_match_projected_object_centres() {
     assert!(checked >= 3, "only {checked} object centres were checkable");
 }
 
-/// `--layout uorf` with Blender: uORF's flat files, read back by colf's uORF reader with the
-/// same camera poses as the colf layout and uORF's intrinsics; `--move` adds the moved views
-/// and the movement file.
+/// `--layout uorf` with Blender: uORF's flat files, read by uORF's loaders as they should be
+/// (tests/python/uorf_loader_check.py) and read back by colf's uORF reader with the same camera
+/// poses as the colf layout and uORF's intrinsics; `--move` adds the moved views, uORF's
+/// scene-manipulation files and the movement file.
 #[test]
 fn blender_uorf_layout_reads_back() {
     if !have_blender() {
@@ -156,9 +159,19 @@ fn blender_uorf_layout_reads_back() {
             "--scenes", "1", "--views", "2", "--size", "32", "--layout", "uorf",
         ],
     );
+    // colf's ids of a uORF mask, through scene.json's grey level of every id.
+    let ids = |dir: &Path, v: usize| -> Vec<u8> {
+        let doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("sc0000_scene.json")).unwrap()).unwrap();
+        let levels: Vec<u8> = serde_json::from_value(doc["uorf_mask_levels"][v].clone()).unwrap();
+        mask(&dir.join(format!("{v:05}_sc0000_az{v:02}_mask.png")))
+            .iter()
+            .map(|g| levels.iter().position(|l| l == g).unwrap() as u8)
+            .collect()
+    };
     for v in 0..2 {
         let name = format!("{v:05}_sc0000_az{v:02}_mask.png");
-        let (mb, ma) = (mask(&u.join(&name)), mask(&a.join(&name)));
+        let (mb, ma) = (ids(&u, v), ids(&a, v));
         let share = foreground_agreement(&mb, &ma);
         eprintln!("{name}: the masks agree on {share:.4} of the object pixels");
         assert!(
@@ -178,6 +191,9 @@ fn blender_uorf_layout_reads_back() {
     ] {
         assert!(u.join(f).is_file(), "{f} missing");
     }
+    // uORF's own loaders (redone in tests/python/uorf_loader_check.py) read it right.
+    let (passed, text) = common::uorf_loader_check(&u, &["1", "2", "--move", "1", "0.5", "0"]);
+    assert!(passed, "{text}");
     let ds = Dataset::open(&u).unwrap();
     assert_eq!((ds.layout, ds.len()), (Layout::Uorf, 1));
     let scene = ds.load(0).unwrap();
@@ -188,7 +204,7 @@ fn blender_uorf_layout_reads_back() {
             .iter()
             .fold(0.0f64, |m, x| m.max(x.abs()));
         assert!(diff < 1e-9, "{diff}");
-        assert_eq!(b.frame.intrinsics.fl_y, 1.4583 * 32.0);
+        assert_eq!(b.frame.intrinsics.fl_y, 350.0 / 240.0 * 32.0);
         assert_eq!(b.frame.intrinsics.fl_x, a.frame.intrinsics.fl_x);
     }
 }

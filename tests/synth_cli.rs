@@ -1,6 +1,9 @@
 //! CLI tests of `colf-synth`: the real binary in temp dirs — determinism, masks against
 //! scene.json, projection of object centres through the written cameras, `--move`, the dataset
-//! readers (our layout and uORF's), and the error contract.
+//! readers (our layout and uORF's), uORF's layout as uORF's own loaders read it
+//! (tests/python/uorf_loader_check.py), and the error contract.
+
+mod common;
 
 use assert_cmd::Command;
 use colf::camera::{Cameras, Frame};
@@ -361,7 +364,7 @@ fn uorf_reader_converts_cameras_from_opencv_axes() {
         let k = b.frame.intrinsics;
         assert_eq!(
             (k.fl_x, k.fl_y, k.cx, k.cy),
-            (35.0, 1.4583 * 32.0, 16.0, 16.0)
+            (35.0, 350.0 / 240.0 * 32.0, 16.0, 16.0)
         );
         // The world origin (every clevr camera's target) projects to the image centre.
         let (u, v) = b.frame.project(DVec3::ZERO).unwrap();
@@ -421,6 +424,106 @@ fn uorf_reader_maps_mask_levels_to_ids() {
     std::fs::write(dir.join("00002_sc0001_az00_RT.txt"), "1 0 0").unwrap();
     let msg = format!("{:#}", ds.load(0).unwrap_err());
     assert!(msg.contains("00002_sc0001_az00_RT.txt"), "{msg}");
+}
+
+/// `--layout uorf` as uORF's own loaders read it (tests/python/uorf_loader_check.py redoes
+/// `multiscenes_dataset.py` and `multiscenes_manip_dataset.py`): in every view uORF's
+/// background (the second-smallest grey level) and its `fg_idx` and `mask_idx` are colf's ids
+/// rendered for the written cameras, `_azi_rot.txt` is the camera's azimuth rotation, and the
+/// scene-manipulation files of `--move` mean what uORF takes them to mean. colf's uORF reader
+/// splits every mask as colf's ids do (so the segmentation scores are the same) and uses
+/// uORF's exact intrinsics. A mask with colf's own values (0 = background) fails the check.
+#[test]
+fn uorf_layout_reads_as_uorf_reads_it() {
+    use colf::synth::{layout_frames, render::Tracer, OutputLayout, Preset, Split};
+    let tmp = tempfile::tempdir().unwrap();
+    let (u, gt) = (tmp.path().join("uorf"), tmp.path().join("gt"));
+    let (scenes, views, size, seed) = (2u64, 3usize, 32u32, 5u64);
+    generate(
+        &u,
+        &[
+            "--scenes",
+            "2",
+            "--views",
+            "3",
+            "--size",
+            "32",
+            "--seed",
+            "5",
+            "--layout",
+            "uorf",
+            "--move",
+            "1",
+            "0.5",
+            "-0.25",
+            "--randomize-look",
+        ],
+    );
+    // colf's ids for the written cameras, from colf's tracer.
+    std::fs::create_dir(&gt).unwrap();
+    let sampled: Vec<_> = (0..scenes)
+        .map(|i| colf::synth::sample(Preset::Clevr567, seed, Split::Train, i, size, views).unwrap())
+        .collect();
+    let mut truth = Vec::new();
+    for (i, s) in sampled.iter().enumerate() {
+        let frames = layout_frames(&s.frames, OutputLayout::Uorf);
+        let providing = &sampled[(i + 1) % scenes as usize];
+        let (own, other) = (
+            Tracer::new(&s.scene, None).unwrap(),
+            Tracer::new(&providing.scene, None).unwrap(),
+        );
+        let mut scene_truth = Vec::new();
+        for (v, f) in frames.iter().enumerate() {
+            let stem = colf::synth::uorf_stem(i as u64, v, views);
+            let ids = own.render_mask(f);
+            let png = |name: String, m: &[u8]| {
+                image::save_buffer(gt.join(name), m, size, size, image::ExtendedColorType::L8)
+                    .unwrap()
+            };
+            png(format!("{stem}_ids.png"), &ids);
+            png(format!("{stem}_providing_ids.png"), &other.render_mask(f));
+            scene_truth.push(ids);
+        }
+        truth.push(scene_truth);
+    }
+    let gt_arg = gt.to_str().unwrap();
+    let args = ["2", "3", "--gt", gt_arg, "--move", "1", "0.5", "-0.25"];
+    let (passed, text) = common::uorf_loader_check(&u, &args);
+    assert!(passed, "{text}");
+    assert_eq!(
+        text.lines().filter(|l| l.ends_with(" ok")).count(),
+        3,
+        "{text}"
+    );
+    // colf's reader: the same partition of every view, uORF's intrinsics.
+    let ds = Dataset::open(&u).unwrap();
+    assert_eq!((ds.layout, ds.len()), (Layout::Uorf, 2));
+    for (i, scene_truth) in truth.iter().enumerate() {
+        let scene = ds.load(i).unwrap();
+        let mut ids = BTreeMap::new();
+        for (view, want) in scene.views.iter().zip(scene_truth) {
+            let got = view.mask.as_ref().unwrap();
+            for (&g, &w) in got.iter().zip(want) {
+                // One id per object in the whole scene, 0 for the background.
+                assert_eq!(*ids.entry(w).or_insert(g), g, "scene {i}");
+                assert_eq!(g == 0, w == 0);
+            }
+            let k = view.frame.intrinsics;
+            assert_eq!((k.fl_x, k.fl_y), (35.0, 350.0 / 240.0 * 32.0));
+        }
+        let distinct: std::collections::BTreeSet<u8> = ids.values().copied().collect();
+        assert_eq!(
+            distinct.len(),
+            ids.len(),
+            "scene {i}: two objects share an id"
+        );
+    }
+    // The check fails on a mask in colf's own values, where uORF misreads the background.
+    let name = "00000_sc0000_az00_mask.png";
+    let ids = &truth[0][0];
+    image::save_buffer(u.join(name), ids, size, size, image::ExtendedColorType::L8).unwrap();
+    let (passed, text) = common::uorf_loader_check(&u, &args);
+    assert!(!passed && text.contains(name), "{text}");
 }
 
 #[test]

@@ -60,7 +60,8 @@ pub struct SynthArgs {
     #[arg(long, value_enum, default_value_t = Split::Train)]
     pub split: Split,
     /// Also render every view with object K (1-based, as in the masks) moved by (DX, DY, 0)
-    /// world units, as view_NNN.moved.png and view_NNN.moved.mask.png.
+    /// world units, as view_NNN.moved.png and view_NNN.moved.mask.png (in uORF's layout, also
+    /// the files of uORF's scene-manipulation loader, see --layout).
     #[arg(long = "move", num_args = 3, value_names = ["K", "DX", "DY"],
           allow_negative_numbers = true)]
     pub move_object: Option<Vec<f64>>,
@@ -69,8 +70,11 @@ pub struct SynthArgs {
     /// `blender` on PATH or the COLF_BLENDER environment variable).
     #[arg(long, value_enum, default_value_t = EngineName::Analytic)]
     pub engine: EngineName,
-    /// File layout: colf's scene folders, or uORF's flat files
-    /// ({i:05}_sc{s:04}_az{v:02}.png, _mask.png, _RT.txt).
+    /// File layout: colf's scene folders, or uORF's flat files as uORF's own loaders read them
+    /// ({i:05}_sc{s:04}_az{v:02}.png, _mask.png with the background at grey 64 and one object
+    /// below it, _RT.txt, _azi_rot.txt; with --move, _moved.png, _changed.png,
+    /// _providing_bg.png, _mask_for_moving.png, _mask_for_bg.png, _mask_for_providing_bg.png
+    /// and NNN_movement.txt); see docs/synth.md.
     #[arg(long, value_enum, default_value_t = OutputLayout::Colf)]
     pub layout: OutputLayout,
     /// Blender engine: path-tracing samples per pixel (no denoising).

@@ -10,7 +10,10 @@ use super::presets::Preset;
 use super::render::RenderedView;
 use super::scene::spherical;
 use super::shading::albedo_of_srgb8;
-use super::{layout_frames, MoveSpec, SampledScene, SceneRender, SynthOptions};
+use super::{
+    layout_frames, renders_manip, uorf, ManipRender, MoveSpec, SampledScene, SceneRender,
+    SynthOptions,
+};
 use crate::camera::Frame;
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec3;
@@ -115,16 +118,10 @@ fn decode_ids(bytes: &[u8], n: usize, name: &str) -> Result<Vec<u8>> {
         .collect()
 }
 
-/// The job entry of one scene; its PNGs go to `tmp`.
-fn scene_job(
-    args: &SynthOptions,
-    index: u64,
-    sampled: &SampledScene,
-    frames: &[Frame],
-    tmp: &Path,
-) -> Value {
+/// The job entries of a scene's objects.
+fn objects_job(sampled: &SampledScene) -> Vec<Value> {
     let n = sampled.scene.objects.len();
-    let objects: Vec<Value> = sampled
+    sampled
         .scene
         .objects
         .iter()
@@ -139,7 +136,21 @@ fn scene_job(
                 "mask_level": id_level(k + 1, n),
             })
         })
-        .collect();
+        .collect()
+}
+
+/// The job entry of one scene; its PNGs go to `tmp`. `providing` is the scene whose
+/// background (its lights: the floor is the same) uORF's scene manipulation puts behind this
+/// scene's objects.
+fn scene_job(
+    args: &SynthOptions,
+    index: u64,
+    sampled: &SampledScene,
+    frames: &[Frame],
+    tmp: &Path,
+    providing: Option<&SampledScene>,
+) -> Value {
+    let objects = objects_job(sampled);
     let views = |tag: &str| -> Vec<Value> {
         frames
             .iter()
@@ -172,6 +183,13 @@ fn scene_job(
     });
     if let Some(MoveSpec { object, dx, dy }) = args.moved {
         s["moved"] = json!({ "object": object, "by": [dx, dy, 0.0], "views": views("m") });
+    }
+    if let Some(other) = providing {
+        // Rendered as scenes of their own, with this scene's cameras.
+        s["extra_scenes"] = json!([
+            { "objects": s["objects"].clone(), "lights": lights(other), "views": views("c") },
+            { "objects": objects_job(other), "lights": lights(other), "views": views("p") },
+        ]);
     }
     s
 }
@@ -232,7 +250,16 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
     let jobs = blender.jobs.clamp(1, n.max(1) as usize);
     let mut scene_jobs: Vec<Value> = Vec::with_capacity(n as usize);
     for (index, (s, frames)) in sampled.iter().enumerate() {
-        scene_jobs.push(scene_job(args, index as u64, s, frames, tmp.path()));
+        let providing = renders_manip(args)
+            .then(|| &sampled[uorf::providing_scene(index as u64, n) as usize].0);
+        scene_jobs.push(scene_job(
+            args,
+            index as u64,
+            s,
+            frames,
+            tmp.path(),
+            providing,
+        ));
     }
     std::thread::scope(|scope| -> Result<()> {
         let mut handles = Vec::new();
@@ -292,6 +319,18 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
                             Some(_) => Some(read_views(&job["moved"], "views", k)?),
                             None => None,
                         };
+                        let manip = if renders_manip(args) {
+                            let j = uorf::providing_scene(index as u64, n);
+                            let other = sampled[j as usize].0.scene.objects.len();
+                            let extra = &job["extra_scenes"];
+                            Some(ManipRender {
+                                providing_scene: j,
+                                changed: read_views(&extra[0], "views", k)?,
+                                providing_bg: read_views(&extra[1], "views", other)?,
+                            })
+                        } else {
+                            None
+                        };
                         let extra = json!({
                             "engine": "blender",
                             "samples": blender.samples,
@@ -301,7 +340,11 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
                             index as u64,
                             s,
                             frames,
-                            &SceneRender { views, moved },
+                            &SceneRender {
+                                views,
+                                moved,
+                                manip,
+                            },
                             extra,
                         );
                     } else if !line.trim().is_empty() {

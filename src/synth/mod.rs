@@ -9,6 +9,7 @@
 //! - [`render`]: the tracer (anti-aliased colour, exact masks).
 //! - [`blender`]: the Blender engine (runs `scripts/blender_clevr.py`).
 //! - [`hash`]: the seed-mixing hash.
+//! - [`uorf`]: uORF's flat layout, as uORF's own loaders read it.
 //! - [`writer`]: PNG/JSON files, atomically.
 //!
 //! [`run`] takes a [`SynthOptions`] and reports progress through a callback; the command
@@ -27,6 +28,7 @@ pub mod presets;
 pub mod render;
 pub mod scene;
 pub mod shading;
+pub mod uorf;
 pub mod writer;
 
 pub use presets::Preset;
@@ -242,10 +244,25 @@ pub fn sample(
 }
 
 /// The rendered views of one scene: every view, and with a move every view again with the
-/// object moved.
+/// object moved (and, in uORF's layout, the views of its scene manipulation).
 pub struct SceneRender {
     pub views: Vec<RenderedView>,
     pub moved: Option<Vec<RenderedView>>,
+    pub manip: Option<ManipRender>,
+}
+
+/// uORF's background change, seen from every camera of a scene: `changed` shows the scene's
+/// objects on the background (ground, sky, light) of scene `providing_scene`; `providing_bg`
+/// shows that scene itself (its masks have its own object ids).
+pub struct ManipRender {
+    pub providing_scene: u64,
+    pub changed: Vec<RenderedView>,
+    pub providing_bg: Vec<RenderedView>,
+}
+
+/// Whether [`run`] renders the views of uORF's scene manipulation ([`ManipRender`]).
+pub fn renders_manip(args: &SynthOptions) -> bool {
+    args.moved.is_some() && args.layout == OutputLayout::Uorf
 }
 
 /// Gives the scene its randomised look: a new light and (for a uniform floor) floor albedo;
@@ -266,15 +283,9 @@ fn render_analytic(
     frames: &[Frame],
     moved: Option<MoveSpec>,
     look: look::Look,
+    providing: Option<(u64, &SampledScene, look::Look)>,
 ) -> Result<SceneRender> {
-    let render_all = |tracer: Tracer| -> Vec<RenderedView> {
-        let tracer = tracer.with_look(look);
-        frames
-            .iter()
-            .enumerate()
-            .map(|(v, f)| tracer.render_view(f, v as u64))
-            .collect()
-    };
+    let render_all = |tracer: Tracer| -> Vec<RenderedView> { render_views(tracer, look, frames) };
     let views = render_all(Tracer::new(&sampled.scene, None)?);
     let moved = match moved {
         Some(m) => {
@@ -286,7 +297,33 @@ fn render_analytic(
         }
         None => None,
     };
-    Ok(SceneRender { views, moved })
+    let manip = match providing {
+        Some((providing_scene, other, other_look)) => {
+            // The other scene's background with this scene's objects.
+            let mut changed = other.scene.clone();
+            changed.objects = sampled.scene.objects.clone();
+            Some(ManipRender {
+                providing_scene,
+                changed: render_views(Tracer::new(&changed, None)?, other_look, frames),
+                providing_bg: render_views(Tracer::new(&other.scene, None)?, other_look, frames),
+            })
+        }
+        None => None,
+    };
+    Ok(SceneRender {
+        views,
+        moved,
+        manip,
+    })
+}
+
+fn render_views(tracer: Tracer, look: look::Look, frames: &[Frame]) -> Vec<RenderedView> {
+    let tracer = tracer.with_look(look);
+    frames
+        .iter()
+        .enumerate()
+        .map(|(v, f)| tracer.render_view(f, v as u64))
+        .collect()
 }
 
 /// The cameras of a scene as written in `layout`: colf's as sampled; uORF's with uORF's
@@ -298,15 +335,16 @@ pub fn layout_frames(frames: &[Frame], layout: OutputLayout) -> Vec<Frame> {
         .map(|f| {
             let mut f = f.clone();
             if layout == OutputLayout::Uorf {
-                f.intrinsics.fl_y = UORF_FOCAL_Y_PER_HEIGHT * f.intrinsics.h as f64;
+                f.intrinsics.fl_x = uorf::FOCAL_X_PER_WIDTH * f.intrinsics.w as f64;
+                f.intrinsics.fl_y = uorf::FOCAL_Y_PER_HEIGHT * f.intrinsics.h as f64;
             }
             f
         })
         .collect()
 }
 
-/// uORF's vertical focal length in units of the image height.
-pub const UORF_FOCAL_Y_PER_HEIGHT: f64 = 1.4583;
+/// uORF's vertical focal length in units of the image height (350/240).
+pub const UORF_FOCAL_Y_PER_HEIGHT: f64 = uorf::FOCAL_Y_PER_HEIGHT;
 
 /// Writes the files of scene `index` in `args.layout`. `frames` are the cameras the views
 /// were rendered with; `visible_pixels` of each object is counted from the rendered masks.
@@ -396,33 +434,8 @@ fn write_outputs(
             writer::write_json(&dir.join("scene.json"), &doc)
         }
         OutputLayout::Uorf => {
-            // OpenGL camera axes → OpenCV (flip the camera's Y and Z).
-            let flip = glam::DMat4::from_diagonal(glam::DVec4::new(1.0, -1.0, -1.0, 1.0));
-            for (v, view) in render.views.iter().enumerate() {
-                let stem = uorf_stem(index, v, args.views);
-                png(&out.join(format!("{stem}.png")), &view.rgb, 3)?;
-                png(&out.join(format!("{stem}_mask.png")), &view.mask, 1)?;
-                let m = frames[v].camera_to_world * flip;
-                let text: String = (0..4)
-                    .map(|r| {
-                        let row = m.row(r);
-                        format!("{} {} {} {}\n", row.x, row.y, row.z, row.w)
-                    })
-                    .collect();
-                crate::io::write_atomic(&out.join(format!("{stem}_RT.txt")), text.as_bytes())?;
-            }
-            for (v, view) in render.moved.iter().flatten().enumerate() {
-                let stem = uorf_stem(index, v, args.views);
-                png(&out.join(format!("{stem}_moved.png")), &view.rgb, 3)?;
-                png(&out.join(format!("{stem}_moved_mask.png")), &view.mask, 1)?;
-            }
-            if let Some(m) = args.moved {
-                let text = format!("{}\n{}\n", m.dx, m.dy);
-                crate::io::write_atomic(
-                    &out.join(format!("{index:03}_movement.txt")),
-                    text.as_bytes(),
-                )?;
-            }
+            let n = scene.objects.len();
+            uorf::write_scene(out, index, args, frames, render, n, &mut doc)?;
             writer::write_json(&out.join(format!("sc{index:04}_scene.json")), &doc)
         }
     }
@@ -540,7 +553,20 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
                     (look::Look::default(), json!({}))
                 };
                 let frames = layout_frames(&sampled.frames, args.layout);
-                let render = render_analytic(&sampled, &frames, args.moved, look)?;
+                let providing = if renders_manip(args) {
+                    let j = uorf::providing_scene(index, n);
+                    let mut other = args.sample(j)?;
+                    let other_look = if args.randomize_look {
+                        randomize_look(&mut other)
+                    } else {
+                        look::Look::default()
+                    };
+                    Some((j, other, other_look))
+                } else {
+                    None
+                };
+                let providing = providing.as_ref().map(|(j, s, l)| (*j, s, *l));
+                let render = render_analytic(&sampled, &frames, args.moved, look, providing)?;
                 write_outputs(args, index, &sampled, &frames, &render, extra)?;
                 report();
                 Ok(())
@@ -562,7 +588,7 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
         "views": args.views,
         "layout": match args.layout {
             OutputLayout::Colf => "scene_NNNNN/{view_NNN.png, view_NNN.mask.png, transforms.json, scene.json}",
-            OutputLayout::Uorf => "{i:05}_sc{scene:04}_az{view:02}{.png, _mask.png, _RT.txt}, sc{scene:04}_scene.json",
+            OutputLayout::Uorf => "{i:05}_sc{scene:04}_az{view:02}{.png, _mask.png, _RT.txt, _azi_rot.txt}, sc{scene:04}_scene.json",
         },
     });
     let mut dataset = dataset;

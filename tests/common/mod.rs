@@ -86,3 +86,31 @@ pub fn photo_folder(dir: &Path) -> (PathBuf, Vec<&'static str>) {
     }
     (images, names)
 }
+
+/// Runs tests/python/uorf_loader_check.py (uORF's loaders redone with numpy and Pillow) on the
+/// uORF-layout folder `dir` with `args`; returns (success, stdout + stderr). Panics if python3
+/// lacks numpy or Pillow (`make test` puts the project's environment first on PATH).
+pub fn uorf_loader_check(dir: &Path, args: &[&str]) -> (bool, String) {
+    let probe = std::process::Command::new("python3")
+        .args(["-c", "import numpy, PIL"])
+        .output();
+    assert!(
+        probe.is_ok_and(|o| o.status.success()),
+        "this test needs python3 with numpy and Pillow (make pyenv; make test)"
+    );
+    let o = std::process::Command::new("python3")
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/python/uorf_loader_check.py"
+        ))
+        .arg(dir)
+        .args(args)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    );
+    (o.status.success(), text)
+}
