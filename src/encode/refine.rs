@@ -15,10 +15,10 @@ use crate::camera::Frame;
 use crate::codes::Slot;
 use crate::image_io::RgbImage32;
 use crate::metrics::psnr_from_mse;
-use crate::model::{Colf, ColfNet, RayBatch, SceneRays};
+use crate::model::{Colf, ColfNet, HostRays, RayBatch, SceneRays};
 use crate::optim::{Adam, AdamConfig};
 use anyhow::{bail, Context, Result};
-use candle_core::{Tensor, Var};
+use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor, Var};
 use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
@@ -351,14 +351,12 @@ impl<'a> Refinement<'a> {
     }
 }
 
-/// Forward-difference step for the frame origins' linearisation (world units).
-const FRAME_STEP: f64 = 1e-3;
-
 impl Pixels {
     /// The rays of the pixels `pick` encoded as a function of the foreground frame origins'
-    /// offsets `offset` [3, K] (zero at the call): coordinates and ordering shifts at `frames`, plus
-    /// their forward-difference derivatives along each world axis times the offsets, so gradients
-    /// reach `offset`. Returns the batch and the target colours [1, R, 3].
+    /// offsets `offset` [3, K] (zero at the call): coordinates, shadow lines and ordering shifts
+    /// at `frames`, plus their derivatives along each world axis (`HostRays::frame_derivatives`)
+    /// times the offsets ([`Linearised`]), so gradients reach `offset`. Returns the batch and the target
+    /// colours [1, R, 3].
     fn linearised_batch(
         &self,
         model: &Colf,
@@ -366,56 +364,77 @@ impl Pixels {
         offset: &Var,
         pick: &[usize],
     ) -> Result<(RayBatch, Tensor)> {
-        let (at, target) = self.batch(model, frames, Some(pick))?;
-        let (s, r) = (at.fields, at.rays);
+        let cfg = model.config();
         let dev = model.device();
-        // Shifts before the per-ray base is subtracted, so batches at different origins compare.
-        let absolute = |b: &RayBatch| -> Result<Tensor> {
-            let base = Tensor::from_vec(
-                b.base.iter().map(|&v| v as f32).collect::<Vec<f32>>(),
-                (1, r, 1),
-                dev,
-            )?;
-            Ok(b.shift.broadcast_add(&base)?)
-        };
-        let shift_at = absolute(&at)?;
-        let mut coords = at.coords.clone();
-        let mut shadow_lines = at.shadow_lines.clone();
-        let mut shift = at.shift.clone();
-        // The background (field 0) never moves: its offset is a constant 0.
-        let zero = Tensor::zeros(1, candle_core::DType::F32, dev)?;
+        let (at, target) = self.host_batch(model, frames, pick)?;
+        let (s, r) = (at.fields, at.rays);
+        let o: Vec<DVec3> = pick.iter().map(|&p| self.origins[p]).collect();
+        let d: Vec<DVec3> = pick.iter().map(|&p| self.dirs[p]).collect();
+        let scene = [SceneRays {
+            slot_to_world: frames,
+            origins: &o,
+            dirs: &d,
+        }];
+        let (mut d_coords, mut d_lines, mut d_shift) = (Vec::new(), Vec::new(), Vec::new());
         for axis in 0..3 {
-            let mut moved = frames.to_vec();
-            for f in moved.iter_mut() {
-                f.w_axis[axis] += FRAME_STEP;
-            }
-            let (ahead, _) = self.batch(model, &moved, Some(pick))?;
-            let per_field = Tensor::cat(&[&zero, &offset.as_tensor().get(axis)?], 0)?; // [S]
-            let per_line = per_field.reshape((s, 1, 1))?;
-            let d_coords = ((&ahead.coords - &at.coords)? / FRAME_STEP)?;
-            coords = (coords + d_coords.broadcast_mul(&per_line)?)?;
-            // Shadow lines move with the frames too (their ground mask does not).
-            if let (Some((lines, _)), Some((ahead_lines, _)), Some((at_lines, _))) =
-                (shadow_lines.as_mut(), &ahead.shadow_lines, &at.shadow_lines)
-            {
-                let d_lines = ((ahead_lines - at_lines)? / FRAME_STEP)?;
-                *lines = (&*lines + d_lines.broadcast_mul(&per_line)?)?;
-            }
-            let d_shift = ((absolute(&ahead)? - &shift_at)? / FRAME_STEP)?;
-            shift = (shift + d_shift.broadcast_mul(&per_field.reshape((1, 1, s))?)?)?;
+            let derivatives = at.frame_derivatives(cfg, &scene, axis)?;
+            d_coords.push(derivatives.coords);
+            // Shadow lines move with the frames too (their ground flags do not).
+            d_lines.extend(derivatives.shadow_lines);
+            d_shift.push(derivatives.shift);
         }
+        let in_dim = cfg.ray_input_dim();
+        let batch = at.into_batch(cfg, dev)?;
+        let offset = offset.as_tensor();
+        let field_major = FieldLayout::Major { per_field: r * in_dim };
+        let coords = batch
+            .coords
+            .apply_op2(offset, Linearised::new(d_coords, field_major, s))?;
+        let shadow_lines = match batch.shadow_lines {
+            Some((lines, on_ground)) if d_lines.len() == 3 => Some((
+                lines.apply_op2(offset, Linearised::new(d_lines, field_major, s))?,
+                on_ground,
+            )),
+            other => other,
+        };
+        let shift = batch
+            .shift
+            .apply_op2(offset, Linearised::new(d_shift, FieldLayout::Minor, s))?;
         Ok((
             RayBatch {
                 coords,
                 shadow_lines,
                 shift,
-                base: at.base,
-                scenes: 1,
-                fields: s,
-                rays: r,
+                ..batch
             },
             target,
         ))
+    }
+
+    /// The encoded rays (on the host) and target colours [1, R, 3] of the pixels `pick`.
+    fn host_batch(
+        &self,
+        model: &Colf,
+        slot_to_world: &[DMat4],
+        pick: &[usize],
+    ) -> Result<(HostRays, Tensor)> {
+        let o: Vec<DVec3> = pick.iter().map(|&p| self.origins[p]).collect();
+        let d: Vec<DVec3> = pick.iter().map(|&p| self.dirs[p]).collect();
+        let t: Vec<f32> = pick
+            .iter()
+            .flat_map(|&p| self.rgb[3 * p..3 * p + 3].iter().copied())
+            .collect();
+        let rays = HostRays::new(
+            model.config(),
+            &[SceneRays {
+                slot_to_world,
+                origins: &o,
+                dirs: &d,
+            }],
+        )
+        .context("encoding the input view's rays")?;
+        let target = Tensor::from_vec(t, (1, pick.len(), 3), model.device())?;
+        Ok((rays, target))
     }
 
     /// The encoded rays and target colours [1, R, 3] of the pixels `pick` (all when `None`).
@@ -452,6 +471,125 @@ impl Pixels {
         .context("encoding the input view's rays")?;
         let target = Tensor::from_vec(t, (1, pick.len(), 3), model.device())?;
         Ok((rays, target))
+    }
+}
+
+/// How a linearised tensor's elements belong to fields (field 0, the background, never moves).
+#[derive(Clone, Copy, Debug)]
+enum FieldLayout {
+    /// [S, R, in]: field-major blocks of `per_field` values (coordinates, shadow lines).
+    Major { per_field: usize },
+    /// [1, R, S]: the field is the last index (ordering shifts).
+    Minor,
+}
+
+/// x + Σ_axis ∂x/∂axis · offset[axis, field − 1] for a value x at the current frames, its
+/// derivatives along the three world axes, and the foreground frame
+/// origins' offsets [3, K] (the second input); the backward gives the offsets' gradient. One
+/// pass over the values, where the same as candle ops took about a dozen passes and most of a
+/// refinement step's time.
+struct Linearised {
+    derivatives: Vec<Vec<f32>>,
+    layout: FieldLayout,
+    fields: usize,
+}
+
+impl Linearised {
+    fn new(derivatives: Vec<Vec<f32>>, layout: FieldLayout, fields: usize) -> Linearised {
+        Linearised {
+            derivatives,
+            layout,
+            fields,
+        }
+    }
+
+    fn field(&self, i: usize) -> usize {
+        match self.layout {
+            FieldLayout::Major { per_field } => i / per_field,
+            FieldLayout::Minor => i % self.fields,
+        }
+    }
+}
+
+fn cpu_f32<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
+    match (s, l.contiguous_offsets()) {
+        (CpuStorage::F32(v), Some((a, b))) => Ok(&v[a..b]),
+        _ => candle_core::bail!("linearised rays: f32 contiguous inputs expected"),
+    }
+}
+
+impl CustomOp2 for Linearised {
+    fn name(&self) -> &'static str {
+        "colf-linearised-rays"
+    }
+
+    fn cpu_fwd(
+        &self,
+        xs: &CpuStorage,
+        xl: &Layout,
+        os: &CpuStorage,
+        ol: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (x, offset) = (cpu_f32(xs, xl)?, cpu_f32(os, ol)?);
+        let k = self.fields - 1;
+        if offset.len() != 3 * k || self.derivatives.iter().any(|d| d.len() != x.len()) {
+            candle_core::bail!("linearised rays: sizes do not match");
+        }
+        let mut out = x.to_vec();
+        for (axis, d) in self.derivatives.iter().enumerate() {
+            let row = &offset[axis * k..(axis + 1) * k];
+            if row.iter().all(|v| *v == 0.0) {
+                continue;
+            }
+            for (i, (o, dv)) in out.iter_mut().zip(d).enumerate() {
+                let f = self.field(i);
+                if f > 0 {
+                    *o += dv * row[f - 1];
+                }
+            }
+        }
+        Ok((CpuStorage::F32(out), xl.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        _x: &Tensor,
+        offset: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let g = grad.flatten_all()?.to_vec1::<f32>()?;
+        let (s, k) = (self.fields, self.fields - 1);
+        let mut d_offset = vec![0f64; 3 * k];
+        for (axis, d) in self.derivatives.iter().enumerate() {
+            let sums = &mut d_offset[axis * k..(axis + 1) * k];
+            match self.layout {
+                FieldLayout::Major { per_field } => {
+                    for (f, (gb, db)) in g
+                        .chunks_exact(per_field)
+                        .zip(d.chunks_exact(per_field))
+                        .enumerate()
+                        .take(s)
+                        .skip(1)
+                    {
+                        let dot: f32 = gb.iter().zip(db).map(|(a, b)| a * b).sum();
+                        sums[f - 1] += dot as f64;
+                    }
+                }
+                FieldLayout::Minor => {
+                    for (gr, dr) in g.chunks_exact(s).zip(d.chunks_exact(s)) {
+                        for f in 1..s {
+                            sums[f - 1] += (gr[f] * dr[f]) as f64;
+                        }
+                    }
+                }
+            }
+        }
+        let d_offset: Vec<f32> = d_offset.into_iter().map(|v| v as f32).collect();
+        Ok((
+            None,
+            Some(Tensor::from_vec(d_offset, offset.shape(), offset.device())?),
+        ))
     }
 }
 

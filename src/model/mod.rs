@@ -35,5 +35,5 @@ pub use history::TrainingRun;
 pub use host::{Colf, Encoded, PreparedSlots, RayOutput};
 pub use light_field::SlotWeights;
 pub use net::{ColfNet, Decoded, Decoder, LightFieldDecoder};
-pub use rays::{HostRays, RayBatch, SceneRays};
+pub use rays::{FrameDerivatives, HostRays, RayBatch, SceneRays};
 pub use slot_attention::SlotOutput;

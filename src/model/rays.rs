@@ -265,6 +265,118 @@ impl HostRays {
     }
 }
 
+/// The derivatives of a [`HostRays`]' values with respect to moving the foreground frames'
+/// origins along one world axis (all frames together; each field's share is its own): what
+/// test-time refinement needs to move frames by gradient (`encode/refine.rs`).
+#[derive(Clone, Debug)]
+pub struct FrameDerivatives {
+    /// ∂coords/∂t_axis [B·S, R, in] (0 for the background).
+    pub coords: Vec<f32>,
+    /// ∂(shadow lines)/∂t_axis, with `Config::shadow_light`.
+    pub shadow_lines: Option<Vec<f32>>,
+    /// ∂(ordering shift, before the base is subtracted)/∂t_axis [B, R, S].
+    pub shift: Vec<f32>,
+}
+
+/// ∂(encoded line)/∂δ for the line's frame origin moved by δ along the world vector whose image
+/// in the frame is `frame_axis` (= A⁻¹·e, A the frame's linear part): the line's origin in the
+/// frame moves by −δ·`frame_axis`, its direction not at all, so only the bounded moment and its
+/// Fourier features change. `encoded` is the line's encoding ([`encode_line`]); `d_frame` its
+/// unit direction in the frame.
+fn encode_line_derivative(
+    out: &mut [f32],
+    encoded: &[f32],
+    d_frame: DVec3,
+    frame_axis: DVec3,
+    scene_scale: f64,
+    freqs: usize,
+) {
+    // m = o' × d' / s, so ∂m = −(axis × d') / s; m̂ = m/√(1 + |m|²) gives
+    // ∂m̂ = √(1 − |m̂|²)·(∂m − m̂ (m̂·∂m)).
+    let m_hat = DVec3::new(encoded[3] as f64, encoded[4] as f64, encoded[5] as f64);
+    let dm = -frame_axis.cross(d_frame) / scene_scale;
+    let dm_hat = (1.0 - m_hat.length_squared()).max(0.0).sqrt() * (dm - m_hat * m_hat.dot(dm));
+    let dv = [0.0, 0.0, 0.0, dm_hat.x, dm_hat.y, dm_hat.z];
+    for (c, d) in dv.iter().enumerate() {
+        out[c] = *d as f32;
+        let mut omega = std::f64::consts::PI;
+        for f in 0..freqs {
+            let (sin, cos) = (encoded[6 + 12 * f + c] as f64, encoded[12 + 12 * f + c] as f64);
+            out[6 + 12 * f + c] = (omega * cos * d) as f32;
+            out[12 + 12 * f + c] = (-omega * sin * d) as f32;
+            omega *= 2.0;
+        }
+    }
+}
+
+impl HostRays {
+    /// The derivatives of these rays' values (encoded from `scenes`, as [`HostRays::new`] did)
+    /// with respect to the foreground frames' origins along world axis `axis` (0, 1, 2).
+    pub fn frame_derivatives(
+        &self,
+        cfg: &Config,
+        scenes: &[SceneRays],
+        axis: usize,
+    ) -> Result<FrameDerivatives> {
+        let (s, r) = (self.fields, self.rays);
+        let in_dim = cfg.ray_input_dim();
+        let mut coords = vec![0f32; self.coords.len()];
+        let mut lines = self.shadow_lines.as_ref().map(|(l, _)| vec![0f32; l.len()]);
+        let mut shift = vec![0f32; self.shift.len()];
+        let to_light = cfg.shadow_light.map(light_direction);
+        let mut world_axis = DVec3::ZERO;
+        world_axis[axis] = 1.0;
+        for (bi, scene) in scenes.iter().enumerate() {
+            let inverses = check(bi, scene)?;
+            for (k, (inv, m)) in inverses.iter().zip(scene.slot_to_world).enumerate() {
+                let field = bi * s + 1 + k;
+                let frame_axis = inv.transform_vector3(world_axis);
+                let t = m.w_axis.truncate();
+                for ri in 0..r {
+                    let (o, d) = (scene.origins[ri], scene.dirs[ri]);
+                    let at = (field * r + ri) * in_dim;
+                    let d_frame = inv.transform_vector3(d).normalize();
+                    encode_line_derivative(
+                        &mut coords[at..at + in_dim],
+                        &self.coords[at..at + in_dim],
+                        d_frame,
+                        frame_axis,
+                        cfg.scene_scale,
+                        cfg.ray_fourier_freqs,
+                    );
+                    if let (Some(out), Some((encoded, _)), Some(to_light)) =
+                        (lines.as_mut(), &self.shadow_lines, to_light)
+                    {
+                        // A ray off the ground keeps its own line (masked in the decoder).
+                        let line_dir = shadow_line(o, d, to_light).map_or(d, |(_, dir)| dir);
+                        encode_line_derivative(
+                            &mut out[at..at + in_dim],
+                            &encoded[at..at + in_dim],
+                            inv.transform_vector3(line_dir).normalize(),
+                            frame_axis,
+                            cfg.scene_scale,
+                            cfg.ray_fourier_freqs,
+                        );
+                    }
+                    // along = (t − o)·d̂; with a locality bound ρ²/r, ρ² = |t − o|² − along².
+                    let d_hat = d.normalize();
+                    let along = (t - o).dot(d_hat);
+                    let mut ds = d_hat[axis];
+                    if cfg.fg_locality > 0.0 {
+                        ds += 2.0 * ((t - o)[axis] - along * d_hat[axis]) / cfg.fg_locality;
+                    }
+                    shift[(bi * r + ri) * s + 1 + k] = ds as f32;
+                }
+            }
+        }
+        Ok(FrameDerivatives {
+            coords,
+            shadow_lines: lines,
+            shift,
+        })
+    }
+}
+
 /// A batch's scenes, slots and rays, refused unless every scene has the same (and some rays).
 fn batch_shape(scenes: &[SceneRays]) -> Result<(usize, usize, usize)> {
     let Some(first) = scenes.first() else {
@@ -335,6 +447,78 @@ fn ordering_shifts(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The analytic frame derivatives agree with forward differences of the encoding.
+    #[test]
+    fn frame_derivatives_match_forward_differences() {
+        let mut cfg = Config::small();
+        cfg.ray_fourier_freqs = 3;
+        cfg.fg_locality = 2.0;
+        cfg.shadow_head = true;
+        cfg.shadow_light = Some([30.0, 55.0]);
+        let frames = [
+            DMat4::from_rotation_translation(
+                glam::DQuat::from_rotation_z(0.7),
+                DVec3::new(0.5, -1.0, 0.3),
+            ),
+            DMat4::from_translation(DVec3::new(-2.0, 1.5, 0.4)),
+        ];
+        let origins = [DVec3::new(8.0, -9.0, 7.0), DVec3::new(-10.0, 2.5, 6.0)];
+        let dirs = [DVec3::new(-0.6, 0.8, -0.5), DVec3::new(1.0, -0.1, -0.6)];
+        let scene = |f: &[DMat4]| {
+            HostRays::new(
+                &cfg,
+                &[SceneRays {
+                    slot_to_world: f,
+                    origins: &origins,
+                    dirs: &dirs,
+                }],
+            )
+            .unwrap()
+        };
+        let at = scene(&frames);
+        let absolute = |h: &HostRays| -> Vec<f64> {
+            h.shift
+                .chunks_exact(3)
+                .zip(&h.base)
+                .flat_map(|(row, b)| row.iter().map(move |v| *v as f64 + b))
+                .collect()
+        };
+        for axis in 0..3 {
+            let step = 1e-4;
+            let mut moved = frames;
+            for f in moved.iter_mut() {
+                f.w_axis[axis] += step;
+            }
+            let ahead = scene(&moved);
+            let analytic = at
+                .frame_derivatives(
+                    &cfg,
+                    &[SceneRays {
+                        slot_to_world: &frames,
+                        origins: &origins,
+                        dirs: &dirs,
+                    }],
+                    axis,
+                )
+                .unwrap();
+            let close = |fd: f64, a: f32| (fd - a as f64).abs() < 2e-3 * (1.0 + fd.abs());
+            for (i, a) in analytic.coords.iter().enumerate() {
+                let fd = (ahead.coords[i] as f64 - at.coords[i] as f64) / step;
+                assert!(close(fd, *a), "axis {axis}, coordinate {i}: {fd} vs {a}");
+            }
+            let (ahead_l, at_l) = (&ahead.shadow_lines.as_ref().unwrap().0, &at.shadow_lines.as_ref().unwrap().0);
+            for (i, a) in analytic.shadow_lines.as_ref().unwrap().iter().enumerate() {
+                let fd = (ahead_l[i] as f64 - at_l[i] as f64) / step;
+                assert!(close(fd, *a), "axis {axis}, line value {i}: {fd} vs {a}");
+            }
+            let (sa, sb) = (absolute(&ahead), absolute(&at));
+            for (i, a) in analytic.shift.iter().enumerate() {
+                let fd = (sa[i] - sb[i]) / step;
+                assert!(close(fd, *a), "axis {axis}, shift {i}: {fd} vs {a}");
+            }
+        }
+    }
 
     #[test]
     fn plucker_is_bounded_and_origin_invariant() {
