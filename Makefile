@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default bench tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -42,6 +42,12 @@ test: $(PY_ENV)/.installed
 bench: build
 	$(CARGO) build --release --example bench
 	$(RELEASE)/examples/bench --out target/bench/bench.json
+
+# Only the trainer's rows of `make bench` (the decoder part of a step, whole training steps and
+# the default encoding, fused and autograd side by side): target/bench/bench-train.json.
+bench-train: build
+	$(CARGO) build --release --example bench
+	$(RELEASE)/examples/bench --train-only --out target/bench/bench-train.json
 
 # The speed/accuracy curve of --adaptive, --prune and resolution on held-out scenes, for the
 # model MODEL (default: the bundled one): docs/tradeoff.md (table) and docs/tradeoff.png.
@@ -233,6 +239,8 @@ model-blender: build
 # make model-both then grows into the bundled default (make model-default runs both). Re-running
 # resumes from the checkpoints in $(UNSUP_RUN). About 7 CPU-hours: run it in the background.
 UNSUP_RUN ?= out/unsup
+# Extra `--set` overrides of u1's fresh model (make model-paper: the paper's decoder sizes).
+UNSUP_SETS ?=
 UNSUP_COMMON := --proposals --attention-mask-weight 0.1 \
   --eval-data $(UNSUP_RUN)/data/test --checkpoint-every 250 --keep-every 2000
 UNSUP_LATE := $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train2k --eval-every 2000 --eval-scenes 16
@@ -252,7 +260,7 @@ model-unsupervised: build
 	  --out $(UNSUP_RUN)/u1.safetensors --eval-every 1000 --eval-scenes 8 --object-fraction 0.2 \
 	  --lr 3e-4 --warmup 500 --steps 32000 --seed 9 \
 	  $(if $(wildcard $(UNSUP_RUN)/u1.safetensors.ckpt),--resume,--zero-background \
-	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2)
+	  --set ray_fourier_freqs=6 --set attention_frames=true --set fg_locality=2 $(UNSUP_SETS))
 	test -f $(UNSUP_RUN)/u3.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(UNSUP_LATE) --mask-weight 0.1 --out $(UNSUP_RUN)/u2.safetensors \
 	  --object-fraction 0.2 --steps 18000 --lr 1e-4 --warmup 200 --decay-from 10000 \
@@ -291,6 +299,8 @@ model-default:
 # scores it on the analytic and the Blender (128²) test scenes, then copies it to
 # models/default.safetensors. Needs Blender; re-running resumes.
 BOTH_RUN ?= out/both
+# Where the result is installed (empty: nowhere; make model-paper keeps its result in its run).
+BOTH_INSTALL ?= models/default.safetensors
 model-both: build
 	test -f $(UNSUP_RUN)/model.safetensors || { echo "model-both: run make model-unsupervised first" >&2; exit 1; }
 	@mkdir -p $(BOTH_RUN)/data
@@ -314,7 +324,22 @@ model-both: build
 	  --set zero_background=false --set background_reader=true)
 	$(call eval_json,$(UNSUP_RUN)/data/test,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/analytic64.json)
 	$(call eval_json,$(BOTH_RUN)/data/test128,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/blender128.json)
-	cp $(BOTH_RUN)/model.safetensors models/default.safetensors
+	$(if $(BOTH_INSTALL),cp $(BOTH_RUN)/model.safetensors $(BOTH_INSTALL))
+
+# The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the bundled
+# default model's recipe — make model-unsupervised, then make model-both — with the decoder at the
+# `paper` preset's sizes (light fields 2×256 → 64 features, colour/ordering heads and compositor
+# 3×128; hypernetworks 64 wide), everything else as the default model's. Runs for days on one
+# core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and re-running
+# resumes where it stopped (nohup, one thread: see docs/training.md). The result stays in
+# $(PAPER_RUN)/both/model.safetensors until it is shown better than the bundled default.
+PAPER_RUN ?= $(HOME)/colf-runs/paper
+PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
+  --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3 \
+  --set hypernet_hidden=64
+model-paper: build
+	$(MAKE) model-unsupervised UNSUP_RUN=$(PAPER_RUN)/unsup UNSUP_SETS='$(PAPER_DECODER)'
+	$(MAKE) model-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both BOTH_INSTALL=
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1

@@ -260,15 +260,26 @@ fn measure_encode(preset: &str, reps: usize) -> Result<Value> {
     )
 }
 
-fn measure_train(steps: u64) -> Result<Value> {
+/// The `paper` preset's decoder sizes as `--set` overrides of the default model's config (its
+/// encoder, slot attention and knobs kept): the decoder issue 37 trains.
+pub const PAPER_DECODER: [&str; 7] = [
+    "lfn_hidden=256",
+    "lfn_features=64",
+    "head_hidden=128",
+    "head_hidden_layers=3",
+    "compositor_hidden=128",
+    "compositor_hidden_layers=3",
+    "hypernet_hidden=64",
+];
+
+/// A training step as `colf-train` runs it: the default model's own recipe (the bundled model
+/// as init; 4 scenes × 4 views × 256 rays, K = 7, object proposals for both mask losses), or
+/// (`paper`) the same with the decoder at the `paper` preset's sizes; through the fused decoder
+/// or (`reference`) candle's autograd.
+fn measure_train(which: &str, reference: bool, steps: u64) -> Result<Value> {
     use colf::train::trainer::{TrainOptions, Trainer};
     let dir = tempfile::tempdir()?;
-    let exe = std::env::current_exe()?;
-    let synth = exe
-        .parent()
-        .and_then(|p| p.parent())
-        .map(|p| p.join("colf-synth"))
-        .context("colf-synth")?;
+    let synth = sibling_binary("colf-synth")?;
     let status = std::process::Command::new(&synth)
         .args(["--scenes", "16", "--seed", "1", "-q", "--out"])
         .arg(dir.path().join("data"))
@@ -277,25 +288,32 @@ fn measure_train(steps: u64) -> Result<Value> {
     if !status.success() {
         bail!("colf-synth failed");
     }
+    let default = std::path::PathBuf::from("models/default.safetensors");
+    let init = if which == "paper" {
+        // The default model's config with the paper's decoder: a fresh model.
+        let cfg = Colf::load(&default)?
+            .config()
+            .with_overrides(&PAPER_DECODER.map(String::from))?;
+        let path = dir.path().join("paper-init.safetensors");
+        Colf::init(&cfg, 0)?.save(&path)?;
+        path
+    } else {
+        default
+    };
     let opts = TrainOptions {
         data: dir.path().join("data"),
         out: dir.path().join("m.safetensors"),
-        init: None,
-        preset: "small".into(),
+        init: Some(init),
         steps,
         batch_scenes: 4,
-        views_per_scene: 2,
-        rays_per_view: 512,
+        views_per_scene: 4,
+        rays_per_view: 256,
         slots: None,
-        lr: 1e-4,
+        lr: 5e-5,
         warmup: 10,
-        l1_weight: 0.0,
-        latent_weight: 1e-4,
-        mask_weight: 0.0,
-        attention_mask_weight: 0.0,
-        object_fraction: 0.0,
-        zero_background: false,
-        config_overrides: Vec::new(),
+        mask_weight: 0.1,
+        attention_mask_weight: 0.1,
+        proposals: true,
         seed: 0,
         checkpoint_every: 0,
         keep_every: 0,
@@ -303,23 +321,34 @@ fn measure_train(steps: u64) -> Result<Value> {
         eval_data: None,
         eval_scenes: 0,
         max_bad_steps: 10,
+        reference_decoder: reference,
         ..TrainOptions::default()
     };
     let mut trainer = Trainer::new(opts, false)?;
     let _ = trainer.train_step()?; // warm-up
+    let (c, t) = (cpu_seconds(), Instant::now());
     let times: Vec<f64> = (0..steps)
         .map(|_| trainer.train_step().map(|l| l.seconds))
         .collect::<Result<_>>()?;
+    let (wall, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
     let s = median(times);
-    Ok(
-        json!({"what": "training step (small; 4 scenes x 2 views x 512 rays, K=7)", "preset": "small",
-              "slots": 7, "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "rays_per_s": 4096.0 / s,
-              "peak_mib": peak_rss_mib()}),
-    )
+    let path = if reference { "autograd" } else { "fused" };
+    let spin = std::env::var("CANDLE_BARRIER_POOL_SPIN_LIMIT").unwrap_or_default();
+    let threads = if spin == "25000" {
+        ", candle's default pool spin"
+    } else {
+        ""
+    };
+    Ok(json!({
+        "what": format!("training step ({path}{threads}; 4 scenes x 4 views x 256 rays, K=7, proposals)"),
+        "preset": which, "slots": 7, "runs": steps,
+        "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "cores_busy": cpu / wall,
+        "rays_per_s": 4096.0 / s, "peak_mib": peak_rss_mib()
+    }))
 }
 
-/// The config of a decoder measurement: the bundled default model's, or the `paper` preset's
-/// sizes with the default model's knobs (Fourier features, shadows, locality, frames, reader).
+/// The config of a decoder measurement: the bundled default model's, or that with the `paper`
+/// preset's decoder sizes ([`PAPER_DECODER`]).
 fn decoder_config(which: &str) -> Result<Config> {
     let default = Colf::load(std::path::Path::new("models/default.safetensors"))?
         .config()
@@ -329,25 +358,10 @@ fn decoder_config(which: &str) -> Result<Config> {
             inference: None,
             ..default
         },
-        "paper" => {
-            let p = Config::paper();
-            Config {
-                preset: "paper".into(),
-                encoder_size: p.encoder_size,
-                encoder_first_stride: p.encoder_first_stride,
-                encoder_channels: p.encoder_channels,
-                slot_dim: p.slot_dim,
-                lfn_hidden: p.lfn_hidden,
-                lfn_features: p.lfn_features,
-                hypernet_hidden: p.hypernet_hidden,
-                head_hidden: p.head_hidden,
-                head_hidden_layers: p.head_hidden_layers,
-                compositor_hidden: p.compositor_hidden,
-                compositor_hidden_layers: p.compositor_hidden_layers,
-                inference: None,
-                ..default
-            }
-        }
+        "paper" => Config {
+            inference: None,
+            ..default.with_overrides(&PAPER_DECODER.map(String::from))?
+        },
         other => bail!("unknown decoder config {other}"),
     })
 }
@@ -511,7 +525,11 @@ fn run_one(spec: &Value) -> Result<Value> {
             reps,
         ),
         Some("encode") => measure_encode(spec["preset"].as_str().unwrap_or("small"), reps),
-        Some("train") => measure_train(if quick { 3 } else { 10 }),
+        Some("train") => measure_train(
+            spec["preset"].as_str().unwrap_or("default"),
+            spec["reference"].as_bool().unwrap_or(false),
+            if quick { 3 } else { 10 },
+        ),
         Some("default-encode") => measure_default_encode(
             spec["size"].as_u64().unwrap_or(64) as usize,
             spec["reference"].as_bool().unwrap_or(false),
@@ -546,33 +564,47 @@ fn main() -> Result<()> {
     let only_render = args.iter().any(|a| a == "--render-only");
     let only_train = args.iter().any(|a| a == "--train-only");
     let mut specs = vec![json!({"kind": "matmul"})];
-    for preset in ["default", "paper"] {
-        for reference in [false, true] {
-            specs.push(json!({"kind": "decoder", "preset": preset, "reference": reference}));
+    if !only_render {
+        // The trainer: the decoder part of a step and whole steps, fused and autograd side by
+        // side; the autograd step also as it ran before (candle's default pool spin).
+        for preset in ["default", "paper"] {
+            for reference in [false, true] {
+                specs.push(json!({"kind": "decoder", "preset": preset, "reference": reference}));
+            }
+        }
+        for preset in ["default", "paper"] {
+            specs.push(json!({"kind": "train", "preset": preset}));
+            specs.push(json!({"kind": "train", "preset": preset, "reference": true}));
+            specs.push(json!({"kind": "train", "preset": preset, "reference": true,
+                              "candle_spin": "25000"}));
+        }
+        for size in [64, 128] {
+            for reference in [false, true] {
+                specs.push(json!({"kind": "default-encode", "size": size, "reference": reference}));
+            }
         }
     }
-    for preset in ["small", "paper"] {
+    if !only_train {
+        for preset in ["small", "paper"] {
+            for slots in [2, 7, 60] {
+                specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
+            }
+            if !only_render {
+                specs.push(json!({"kind": "encode", "preset": preset}));
+            }
+        }
+        specs.push(
+            json!({"kind": "render", "preset": "small", "slots": 7, "size": 128, "candle": true}),
+        );
         for slots in [2, 7, 60] {
-            specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
+            for samples in [32, 64, 128] {
+                specs.push(json!({"kind": "render", "preset": "volumetric", "slots": slots,
+                                  "size": 128, "samples": samples}));
+            }
         }
         if !only_render {
-            specs.push(json!({"kind": "encode", "preset": preset}));
+            specs.push(json!({"kind": "encode", "preset": "volumetric"}));
         }
-    }
-    specs.push(
-        json!({"kind": "render", "preset": "small", "slots": 7, "size": 128, "candle": true}),
-    );
-    for slots in [2, 7, 60] {
-        for samples in [32, 64, 128] {
-            specs.push(
-                json!({"kind": "render", "preset": "volumetric", "slots": slots,
-                              "size": 128, "samples": samples}),
-            );
-        }
-    }
-    if !only_render {
-        specs.push(json!({"kind": "encode", "preset": "volumetric"}));
-        specs.push(json!({"kind": "train"}));
     }
     let exe = std::env::current_exe()?;
     let mut results = Vec::new();
@@ -581,10 +613,11 @@ fn main() -> Result<()> {
     for mut spec in specs {
         spec["quick"] = json!(quick);
         eprintln!("bench: {spec}");
-        let child = std::process::Command::new(&exe)
-            .arg("--one")
-            .arg(spec.to_string())
-            .output()?;
+        let mut command = std::process::Command::new(&exe);
+        if let Some(spin) = spec["candle_spin"].as_str() {
+            command.env("CANDLE_BARRIER_POOL_SPIN_LIMIT", spin);
+        }
+        let child = command.arg("--one").arg(spec.to_string()).output()?;
         if !child.status.success() {
             bail!(
                 "measurement {spec} failed: {}",
@@ -609,9 +642,11 @@ fn main() -> Result<()> {
         results.push(row);
     }
     println!(
-        "| what | preset | slots | res | samples | ms | FPS | GFLOP/s | of peak | GFLOP per CPU-s | of peak per CPU-s | peak MiB |"
+        "| what | preset | slots | res | samples | ms | FPS | steps/h | CPU s | GFLOP/s | of peak | GFLOP per CPU-s | of peak per CPU-s | peak MiB |"
     );
-    println!("| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    println!(
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
+    );
     let cell = |v: &Value, digits: usize| {
         v.as_f64()
             .map_or("".to_string(), |x| format!("{x:.digits$}"))
@@ -622,7 +657,7 @@ fn main() -> Result<()> {
                 .map_or(String::new(), |x| format!("{:.0} %", 100.0 * x))
         };
         println!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
             r["what"].as_str().unwrap_or(""),
             r["preset"].as_str().unwrap_or(""),
             r["slots"].as_u64().map_or(String::new(), |v| v.to_string()),
@@ -634,6 +669,8 @@ fn main() -> Result<()> {
                 .map_or(String::new(), |v| v.to_string()),
             cell(&r["ms"], 1),
             cell(&r["fps"], 2),
+            cell(&r["steps_per_hour"], 0),
+            cell(&r["cpu_s"], 2),
             cell(&r["gflops"], 1),
             pct(&r["ratio_to_peak"]),
             cell(&r["gflops_per_cpu_s"], 1),
@@ -669,12 +706,47 @@ fn main() -> Result<()> {
             ratios.join("; ")
         );
     }
-    if let Some(train) = results.iter().find(|r| r["steps_per_hour"].is_number()) {
-        println!(
-            "\ntraining: {:.0} steps/hour, {:.0} rays/s",
-            train["steps_per_hour"].as_f64().unwrap_or(0.0),
-            train["rays_per_s"].as_f64().unwrap_or(0.0)
+    // Fused ÷ autograd, from this run's rows.
+    let find = |kind: &str, preset: &str, path: &str, extra: &str| {
+        results.iter().find(|r| {
+            let what = r["what"].as_str().unwrap_or("");
+            what.starts_with(kind)
+                && what.contains(path)
+                && (extra.is_empty() || what.contains(extra))
+                && (!what.contains("default pool spin") || !extra.is_empty())
+                && r["preset"] == preset
+        })
+    };
+    let ratio = |a: Option<&Value>, b: Option<&Value>, key: &str| {
+        Some(b?[key].as_f64()? / a?[key].as_f64()?)
+    };
+    for preset in ["default", "paper"] {
+        let fused = find("training step", preset, "fused", "");
+        for (label, extra) in [("autograd", ""), ("autograd as before", "default pool spin")] {
+            if let Some(x) = ratio(fused, find("training step", preset, "autograd", extra), "ms") {
+                println!("training step ({preset}): fused {x:.2}x faster than {label}");
+            }
+        }
+        let d = ratio(
+            find("decoder", preset, "fused", ""),
+            find("decoder", preset, "autograd", ""),
+            "ms",
         );
+        if let Some(x) = d {
+            println!("decoder part of a step ({preset}): fused {x:.2}x faster than autograd");
+        }
+    }
+    for size in [64, 128] {
+        let rows = |path: &str| {
+            results.iter().find(|r| {
+                r["what"].as_str().unwrap_or("").starts_with("default encoding")
+                    && r["what"].as_str().unwrap_or("").contains(path)
+                    && r["resolution"] == size
+            })
+        };
+        if let Some(x) = ratio(rows("fused"), rows("autograd"), "cpu_s") {
+            println!("default encoding at {size}²: fused {x:.2}x less CPU time than autograd");
+        }
     }
     if let Some(dir) = std::path::Path::new(&out).parent() {
         std::fs::create_dir_all(dir)?;
