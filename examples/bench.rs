@@ -410,12 +410,17 @@ fn measure_decoder(which: &str, reference: bool, reps: usize) -> Result<Value> {
     let o: Vec<DVec3> = pick.iter().map(|&i| origins[i]).collect();
     let dv: Vec<DVec3> = pick.iter().map(|&i| dirs[i]).collect();
     let target = Tensor::from_vec(
-        noise(b * r * 3, 5).iter().map(|v| 0.5 + 0.4 * v).collect::<Vec<f32>>(),
+        noise(b * r * 3, 5)
+            .iter()
+            .map(|v| 0.5 + 0.4 * v)
+            .collect::<Vec<f32>>(),
         (b, r, 3),
         &dev,
     )?;
     let labels = Tensor::from_vec(
-        (0..b * r).map(|i| (i % (k + 1)) as u32).collect::<Vec<u32>>(),
+        (0..b * r)
+            .map(|i| (i % (k + 1)) as u32)
+            .collect::<Vec<u32>>(),
         (b * r, 1),
         &dev,
     )?;
@@ -463,7 +468,9 @@ fn measure_default_encode(size: usize, reference: bool, reps: usize) -> Result<V
     let dir = tempfile::tempdir()?;
     let synth = sibling_binary("colf-synth")?;
     let status = std::process::Command::new(&synth)
-        .args(["--scenes", "1", "--seed", "9", "--split", "test", "-q", "--size"])
+        .args([
+            "--scenes", "1", "--seed", "9", "--split", "test", "-q", "--size",
+        ])
         .arg(size.to_string())
         .arg("--out")
         .arg(dir.path())
@@ -587,7 +594,8 @@ fn main() -> Result<()> {
     if !only_train {
         for preset in ["small", "paper"] {
             for slots in [2, 7, 60] {
-                specs.push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
+                specs
+                    .push(json!({"kind": "render", "preset": preset, "slots": slots, "size": 128}));
             }
             if !only_render {
                 specs.push(json!({"kind": "encode", "preset": preset}));
@@ -598,8 +606,10 @@ fn main() -> Result<()> {
         );
         for slots in [2, 7, 60] {
             for samples in [32, 64, 128] {
-                specs.push(json!({"kind": "render", "preset": "volumetric", "slots": slots,
-                                  "size": 128, "samples": samples}));
+                specs.push(
+                    json!({"kind": "render", "preset": "volumetric", "slots": slots,
+                                  "size": 128, "samples": samples}),
+                );
             }
         }
         if !only_render {
@@ -722,8 +732,15 @@ fn main() -> Result<()> {
     };
     for preset in ["default", "paper"] {
         let fused = find("training step", preset, "fused", "");
-        for (label, extra) in [("autograd", ""), ("autograd as before", "default pool spin")] {
-            if let Some(x) = ratio(fused, find("training step", preset, "autograd", extra), "ms") {
+        for (label, extra) in [
+            ("autograd", ""),
+            ("autograd as before", "default pool spin"),
+        ] {
+            if let Some(x) = ratio(
+                fused,
+                find("training step", preset, "autograd", extra),
+                "ms",
+            ) {
                 println!("training step ({preset}): fused {x:.2}x faster than {label}");
             }
         }
@@ -739,7 +756,10 @@ fn main() -> Result<()> {
     for size in [64, 128] {
         let rows = |path: &str| {
             results.iter().find(|r| {
-                r["what"].as_str().unwrap_or("").starts_with("default encoding")
+                r["what"]
+                    .as_str()
+                    .unwrap_or("")
+                    .starts_with("default encoding")
                     && r["what"].as_str().unwrap_or("").contains(path)
                     && r["resolution"] == size
             })

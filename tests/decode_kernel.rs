@@ -66,8 +66,12 @@ fn model(cfg: &Config, seed: u64) -> Colf {
         } else {
             0.02
         };
-        let noise = Tensor::from_vec(normal(&mut rng, t.elem_count(), scale), t.shape(), &Device::Cpu)
-            .unwrap();
+        let noise = Tensor::from_vec(
+            normal(&mut rng, t.elem_count(), scale),
+            t.shape(),
+            &Device::Cpu,
+        )
+        .unwrap();
         colf = colf.with_tensor(&name, (t + noise).unwrap()).unwrap();
     }
     colf.into_trainable().unwrap()
@@ -75,7 +79,12 @@ fn model(cfg: &Config, seed: u64) -> Colf {
 
 /// Rays of one scene: `r` rays from cameras around the origin (a few far away when `extreme`),
 /// and K slot frames (rotated and translated; far away when `extreme`).
-fn scene(rng: &mut StdRng, k: usize, r: usize, extreme: bool) -> (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>) {
+fn scene(
+    rng: &mut StdRng,
+    k: usize,
+    r: usize,
+    extreme: bool,
+) -> (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>) {
     let frames = (0..k)
         .map(|i| {
             let far = if extreme && i % 2 == 1 { 1e4 } else { 1.0 };
@@ -92,7 +101,11 @@ fn scene(rng: &mut StdRng, k: usize, r: usize, extreme: bool) -> (Vec<DMat4>, Ve
         let az: f64 = rng.random_range(0.0..std::f64::consts::TAU);
         let dist = if extreme && i % 5 == 0 { 3e4 } else { 12.0 };
         let eye = DVec3::new(az.cos() * dist * 0.77, az.sin() * dist * 0.77, dist * 0.64);
-        let look = DVec3::new(rng.random_range(-3.0..3.0), rng.random_range(-3.0..3.0), 0.0);
+        let look = DVec3::new(
+            rng.random_range(-3.0..3.0),
+            rng.random_range(-3.0..3.0),
+            0.0,
+        );
         origins.push(eye);
         dirs.push(look - eye);
     }
@@ -166,8 +179,12 @@ fn run(case: &Case, reference: bool) -> Run {
     let mut loss = Tensor::zeros((), DType::F32, &Device::Cpu).unwrap();
     for (name, t) in &outputs {
         let scale = if name == "ordering" { 0.01 } else { 1.0 };
-        let w = Tensor::from_vec(normal(&mut wrng, t.elem_count(), scale), t.shape(), &Device::Cpu)
-            .unwrap();
+        let w = Tensor::from_vec(
+            normal(&mut wrng, t.elem_count(), scale),
+            t.shape(),
+            &Device::Cpu,
+        )
+        .unwrap();
         loss = (loss + (t * w).unwrap().sum_all().unwrap()).unwrap();
     }
     let grads = loss.backward().unwrap();
@@ -183,7 +200,13 @@ fn run(case: &Case, reference: bool) -> Run {
 }
 
 fn norm(t: &Tensor) -> f32 {
-    t.sqr().unwrap().sum_all().unwrap().to_scalar::<f32>().unwrap().sqrt()
+    t.sqr()
+        .unwrap()
+        .sum_all()
+        .unwrap()
+        .to_scalar::<f32>()
+        .unwrap()
+        .sqrt()
 }
 
 /// ‖a − b‖ / ‖b‖ (absolute below a norm of 1e-6).
@@ -213,7 +236,12 @@ fn check(case: Case) {
         .chain(&reference.grads)
         .map(|(n, _)| n)
         .collect();
-    let find = |run: &Run, name: &str| run.grads.iter().find(|(n, _)| n == name).map(|(_, g)| g.clone());
+    let find = |run: &Run, name: &str| {
+        run.grads
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, g)| g.clone())
+    };
     for name in names {
         let (a, b) = match (find(&fused, name), find(&reference, name)) {
             (Some(a), Some(b)) => (a, b),
@@ -222,7 +250,10 @@ fn check(case: Case) {
             (None, None) => unreachable!(),
         };
         let err = relative_error(&a, &b);
-        assert!(err < 1e-4, "gradient of {name}: relative error {err:e} ({what})");
+        assert!(
+            err < 1e-4,
+            "gradient of {name}: relative error {err:e} ({what})"
+        );
         checked += 1;
     }
     assert!(checked > 20, "{checked} gradients compared");
@@ -340,4 +371,173 @@ fn same_bytes_whatever_the_thread_count() {
         })
     };
     assert_eq!(bytes(1), bytes(2));
+}
+
+/// With a support, a field absent from a ray decodes as a field pushed infinitely far behind
+/// every other one on that ray (without shadows, which an absent field does not cast): the
+/// same colours, weights and gradients as the full decode with those fields' ordering shifts
+/// raised by 10⁶, where their weight underflows to exactly 0.
+#[test]
+fn a_support_leaves_out_exactly_the_fields_it_drops() {
+    let cfg = Config {
+        shadow_head: false,
+        shadow_light: None,
+        ..base()
+    };
+    let colf = model(&cfg, 9);
+    let net = colf.model().clone();
+    let (b, k, r, d) = (2usize, 5usize, 140usize, cfg.slot_dim);
+    let s = 1 + k;
+    let mut rng = StdRng::seed_from_u64(4);
+    let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
+    let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
+    let scenes: Vec<_> = (0..b).map(|_| scene(&mut rng, k, r, false)).collect();
+    let scene_rays: Vec<SceneRays> = scenes
+        .iter()
+        .map(|(f, o, dir)| SceneRays {
+            slot_to_world: f,
+            origins: o,
+            dirs: dir,
+        })
+        .collect();
+    let rays = RayBatch::new(&cfg, &scene_rays, &Device::Cpu).unwrap();
+    // Field s of scene b keeps the rays where (ray + 3·s + b) % 4 != 0, the background all.
+    let keeps = |bi: usize, si: usize, ri: usize| si == 0 || (ri + 3 * si + bi) % 4 != 0;
+    let support: Vec<Vec<u32>> = (0..b * s)
+        .map(|u| {
+            (0..r)
+                .filter(|&ri| keeps(u / s, u % s, ri))
+                .map(|ri| ri as u32)
+                .collect()
+        })
+        .collect();
+    let mut shift = rays.shift.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    for bi in 0..b {
+        for ri in 0..r {
+            for si in 0..s {
+                if !keeps(bi, si, ri) {
+                    shift[(bi * r + ri) * s + si] += 1e6;
+                }
+            }
+        }
+    }
+    let pushed = RayBatch {
+        shift: Tensor::from_vec(shift, (b, r, s), &Device::Cpu).unwrap(),
+        coords: rays.coords.clone(),
+        shadow_lines: None,
+        base: rays.base.clone(),
+        scenes: b,
+        fields: s,
+        rays: r,
+    };
+    let target =
+        Tensor::from_vec(normal(&mut rng, b * r * 3, 0.3), (b, r, 3), &Device::Cpu).unwrap();
+    let run = |sparse: bool| {
+        let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
+        let out = if sparse {
+            net.decode_with_support(&fields, &rays, support.clone())
+                .unwrap()
+        } else {
+            net.decode(&fields, &pushed).unwrap()
+        };
+        let loss = (&out.rgb - &target)
+            .unwrap()
+            .sqr()
+            .unwrap()
+            .sum_all()
+            .unwrap();
+        let grads = loss.backward().unwrap();
+        let mut named = colf.named_vars();
+        named.push(("latents.fg".into(), fg.clone()));
+        named.push(("latents.bg".into(), bg.clone()));
+        let g: Vec<(String, Tensor)> = named
+            .into_iter()
+            .filter_map(|(n, v)| grads.get(v.as_tensor()).map(|g| (n, g.clone())))
+            .collect();
+        (out.rgb, out.weights, g)
+    };
+    let (rgb_sparse, w_sparse, g_sparse) = run(true);
+    let (rgb_dense, w_dense, g_dense) = run(false);
+    assert!(relative_error(&rgb_sparse, &rgb_dense) < 1e-6);
+    assert!(relative_error(&w_sparse, &w_dense) < 1e-6);
+    assert_eq!(g_sparse.len(), g_dense.len());
+    for ((name, a), (_, b)) in g_sparse.iter().zip(&g_dense) {
+        let err = relative_error(a, b);
+        assert!(err < 1e-4, "gradient of {name}: relative error {err:e}");
+    }
+    // The dropped fields really are absent: weight exactly 0 where dropped.
+    let w = w_sparse.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    for bi in 0..b {
+        for ri in 0..r {
+            for si in 0..s {
+                if !keeps(bi, si, ri) {
+                    assert_eq!(w[(bi * r + ri) * s + si], 0.0);
+                }
+            }
+        }
+    }
+}
+
+/// A support that keeps every ray decodes exactly as no support, shadows, shadow lines and
+/// differentiable rays included (the gathered rows and the scattered ray gradients line up).
+#[test]
+fn a_full_support_changes_nothing() {
+    let cfg = base();
+    let colf = model(&cfg, 13);
+    let net = colf.model().clone();
+    let (k, r, d) = (4usize, 150usize, cfg.slot_dim);
+    let mut rng = StdRng::seed_from_u64(8);
+    let fg = Var::from_vec(normal(&mut rng, k * d, 1.0), (1, k, d), &Device::Cpu).unwrap();
+    let bg = Var::from_vec(normal(&mut rng, d, 1.0), (1, d), &Device::Cpu).unwrap();
+    let (frames, o, dir) = scene(&mut rng, k, r, false);
+    let base_rays = RayBatch::new(
+        &cfg,
+        &[SceneRays {
+            slot_to_world: &frames,
+            origins: &o,
+            dirs: &dir,
+        }],
+        &Device::Cpu,
+    )
+    .unwrap();
+    let run = |sparse: bool| {
+        let coords = Var::from_tensor(&base_rays.coords).unwrap();
+        let shift = Var::from_tensor(&base_rays.shift).unwrap();
+        let (lines, ground) = base_rays.shadow_lines.clone().unwrap();
+        let lines = Var::from_tensor(&lines).unwrap();
+        let rays = RayBatch {
+            coords: coords.as_tensor().clone(),
+            shift: shift.as_tensor().clone(),
+            shadow_lines: Some((lines.as_tensor().clone(), ground)),
+            base: base_rays.base.clone(),
+            scenes: 1,
+            fields: 1 + k,
+            rays: r,
+        };
+        let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
+        let out = if sparse {
+            let all: Vec<u32> = (0..r as u32).collect();
+            net.decode_with_support(&fields, &rays, vec![all; 1 + k])
+                .unwrap()
+        } else {
+            net.decode(&fields, &rays).unwrap()
+        };
+        let loss = (out.rgb.sqr().unwrap().sum_all().unwrap() + out.log_weights.sum_all().unwrap())
+            .unwrap();
+        let grads = loss.backward().unwrap();
+        [
+            fg.as_tensor(),
+            bg.as_tensor(),
+            coords.as_tensor(),
+            shift.as_tensor(),
+            lines.as_tensor(),
+        ]
+        .iter()
+        .map(|t| grads.get(t).unwrap().clone())
+        .chain([out.rgb])
+        .collect::<Vec<Tensor>>()
+    };
+    for (a, b) in run(true).iter().zip(&run(false)) {
+        assert!(relative_error(a, b) < 1e-6, "{}", relative_error(a, b));
+    }
 }

@@ -254,6 +254,13 @@ pub struct FitArgs {
     /// units; 0: frames fixed).
     #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate_or_zero)]
     pub refine_frame_lr: f64,
+
+    /// During refinement, evaluate a slot only on the pixels near where its compositor weight
+    /// or shadow exceeds EPS (checked every few steps on a coarse grid of the image; 0: every
+    /// slot on every pixel, as before). Most slots matter on a small part of the image, so this
+    /// is most of refinement's speed.
+    #[arg(long, default_value_t = crate::encode::refine::DEFAULT_SUPPORT, value_name = "EPS", value_parser = parse::unit_interval)]
+    pub refine_support: f64,
 }
 
 impl FitArgs {
@@ -313,6 +320,7 @@ impl FitArgs {
             rays: self.refine_rays,
             anchor_weight: self.refine_anchor,
             frame_lr: self.refine_frame_lr,
+            support: self.refine_support,
             seed,
         }
     }

@@ -38,6 +38,10 @@ pub struct RefineOptions {
     pub anchor_weight: f64,
     /// Adam's learning rate on the slots' frame origins (world units; 0: frames fixed).
     pub frame_lr: f64,
+    /// A slot's light field is evaluated only on the pixels near where its compositor weight or
+    /// its shadow exceeds this ([`Support`]; 0: every slot on every pixel). Elsewhere it
+    /// neither draws nor receives gradient: most slots matter on a small part of the image.
+    pub support: f64,
     /// Seed of the pixel subsets.
     pub seed: u64,
 }
@@ -50,10 +54,20 @@ impl Default for RefineOptions {
             rays: 1024,
             anchor_weight: 0.0,
             frame_lr: 0.003,
+            support: DEFAULT_SUPPORT,
             seed: 0,
         }
     }
 }
+
+/// The default of [`RefineOptions::support`]: off. With the bundled models an unused slot still
+/// takes a compositor weight of 10⁻³–10⁻² on most pixels, so a support only pays at thresholds
+/// that change the renders; measured in `docs/speed.md`.
+pub const DEFAULT_SUPPORT: f64 = 0.0;
+
+/// Steps between two computations of the slots' supports (latents and frames move little
+/// in that many steps).
+const SUPPORT_EVERY: usize = 10;
 
 /// What a refinement did: the input view's PSNR (on the rendered subsets) at the first and the
 /// last step.
@@ -138,26 +152,38 @@ pub fn refine_latents_on_views(
         .transpose()?;
     let mut rng = StdRng::seed_from_u64(opts.seed);
     let (mut first, mut last) = (f64::NAN, f64::NAN);
+    let mut support: Option<Support> = None;
+    let every_pixel: Vec<usize> = (0..n).collect();
     for step in 0..opts.steps {
         let drawn;
-        let (rays, target) = match &fixed {
-            Some(b) => (&b.0, &b.1),
+        let drawn_pick;
+        let (rays, target, pick) = match &fixed {
+            Some(b) => (&b.0, &b.1, &every_pixel),
             None => {
-                let pick: Vec<usize> = if per_step == n {
-                    (0..n).collect()
+                drawn_pick = if per_step == n {
+                    every_pixel.clone()
                 } else {
                     (0..per_step).map(|_| rng.random_range(0..n)).collect()
                 };
                 drawn = if move_frames {
-                    pixels.linearised_batch(model, &refinement.frames, &refinement.offset, &pick)?
+                    pixels.linearised_batch(
+                        model,
+                        &refinement.frames,
+                        &refinement.offset,
+                        &drawn_pick,
+                    )?
                 } else {
-                    pixels.batch(model, &refinement.frames, Some(&pick))?
+                    pixels.batch(model, &refinement.frames, Some(&drawn_pick))?
                 };
-                (&drawn.0, &drawn.1)
+                (&drawn.0, &drawn.1, &drawn_pick)
             }
         };
+        if opts.support > 0.0 && step % SUPPORT_EVERY == 0 {
+            support = Some(refinement.support(model, &pixels, opts.support)?);
+        }
+        let fields = support.as_ref().map(|s| s.fields_of(pick));
         // A non-finite gradient: keep what the last good step gave.
-        let Some(mse) = refinement.step(rays, target, opts)? else {
+        let Some(mse) = refinement.step(rays, target, opts, fields)? else {
             break;
         };
         if step == 0 {
@@ -215,6 +241,8 @@ struct Pixels {
     origins: Vec<DVec3>,
     dirs: Vec<DVec3>,
     rgb: Vec<f32>,
+    /// Each view's first pixel, width and height (its pixels are row-major from there).
+    views: Vec<(usize, usize, usize)>,
 }
 
 impl Pixels {
@@ -223,8 +251,11 @@ impl Pixels {
             origins: Vec::new(),
             dirs: Vec::new(),
             rgb: Vec::new(),
+            views: Vec::new(),
         };
         for view in views {
+            let (w, h) = (view.image.w as usize, view.image.h as usize);
+            pixels.views.push((pixels.origins.len(), w, h));
             pixels.origins.extend_from_slice(&view.origins);
             pixels.dirs.extend_from_slice(&view.dirs);
             pixels.rgb.extend_from_slice(&view.image.data);
@@ -293,9 +324,13 @@ impl<'a> Refinement<'a> {
         rays: &RayBatch,
         target: &Tensor,
         opts: &RefineOptions,
+        support: Option<Vec<Vec<u32>>>,
     ) -> Result<Option<f64>> {
         let fields = self.net.prepare(self.fg.as_tensor(), self.bg.as_tensor())?;
-        let decoded = self.net.decode(&fields, rays)?;
+        let decoded = match support {
+            Some(support) => self.net.decode_with_support(&fields, rays, support)?,
+            None => self.net.decode(&fields, rays)?,
+        };
         let mse = (&decoded.rgb - target)?.sqr()?.mean_all()?;
         let mse_value = mse.to_scalar::<f32>()? as f64;
         let mut loss = mse;
@@ -323,6 +358,56 @@ impl<'a> Refinement<'a> {
             self.offset.set(&self.offset.as_tensor().zeros_like()?)?;
         }
         Ok(Some(mse_value))
+    }
+
+    /// Where each slot matters now ([`Support`]): the compositor weights and shadows of the
+    /// current latents and frames on every [`SUPPORT_CELL`]-th pixel of each view (both ways),
+    /// a slot active on a pixel when it exceeds `eps` on a sample of the 3×3 cells around it.
+    fn support(&self, model: &Colf, pixels: &Pixels, eps: f64) -> Result<Support> {
+        let c = SUPPORT_CELL;
+        // The samples: the centre pixel of every c×c cell of every view.
+        let mut samples = Vec::new();
+        let mut cells = Vec::new(); // per view: first sample, cells across, cells down
+        for &(first, w, h) in &pixels.views {
+            let (cw, ch) = (w.div_ceil(c), h.div_ceil(c));
+            cells.push((samples.len(), cw, ch));
+            for cy in 0..ch {
+                for cx in 0..cw {
+                    let (x, y) = ((cx * c + c / 2).min(w - 1), (cy * c + c / 2).min(h - 1));
+                    samples.push(first + y * w + x);
+                }
+            }
+        }
+        let (rays, _) = pixels.batch(model, &self.frames, Some(&samples))?;
+        let fields = self.net.prepare(self.fg.as_tensor(), self.bg.as_tensor())?;
+        let decoded = self.net.decode(&fields, &rays)?;
+        let s = rays.fields;
+        let weights = decoded.weights.flatten_all()?.to_vec1::<f32>()?;
+        let shadow = match &decoded.shadow {
+            Some(t) => t.flatten_all()?.to_vec1::<f32>()?,
+            None => vec![0.0; weights.len()],
+        };
+        let eps = eps as f32;
+        let hot = |sample: usize, field: usize| {
+            weights[sample * s + field] > eps || shadow[sample * s + field] > eps
+        };
+        let n = pixels.origins.len();
+        let mut active = vec![vec![false; n]; s];
+        for ((first, w, h), (first_sample, cw, ch)) in pixels.views.iter().zip(&cells) {
+            for y in 0..*h {
+                for x in 0..*w {
+                    let (cx, cy) = (x / c, y / c);
+                    for (field, pixels_active) in active.iter_mut().enumerate().skip(1) {
+                        let near = (cy.saturating_sub(1)..=(cy + 1).min(ch - 1)).any(|ny| {
+                            (cx.saturating_sub(1)..=(cx + 1).min(cw - 1))
+                                .any(|nx| hot(first_sample + ny * cw + nx, field))
+                        });
+                        pixels_active[first + y * w + x] = near;
+                    }
+                }
+            }
+        }
+        Ok(Support { active })
     }
 
     /// Writes the refined values back, if every one is finite.
@@ -386,7 +471,9 @@ impl Pixels {
         let in_dim = cfg.ray_input_dim();
         let batch = at.into_batch(cfg, dev)?;
         let offset = offset.as_tensor();
-        let field_major = FieldLayout::Major { per_field: r * in_dim };
+        let field_major = FieldLayout::Major {
+            per_field: r * in_dim,
+        };
         let coords = batch
             .coords
             .apply_op2(offset, Linearised::new(d_coords, field_major, s))?;
@@ -471,6 +558,31 @@ impl Pixels {
         .context("encoding the input view's rays")?;
         let target = Tensor::from_vec(t, (1, pick.len(), 3), model.device())?;
         Ok((rays, target))
+    }
+}
+
+/// Side of the pixel cells whose centre samples a slot's support (`Refinement::support`).
+const SUPPORT_CELL: usize = 4;
+
+/// Per field (background first), the input view's pixels on which it is evaluated.
+struct Support {
+    /// [S][pixels]; the background's row is unused (it is evaluated everywhere).
+    active: Vec<Vec<bool>>,
+}
+
+impl Support {
+    /// For the drawn pixels `pick` (a step's rays, in order), each field's rays as the decode
+    /// kernel takes them: indices into `pick`, the background's all of them.
+    fn fields_of(&self, pick: &[usize]) -> Vec<Vec<u32>> {
+        self.active
+            .iter()
+            .enumerate()
+            .map(|(field, active)| {
+                (0..pick.len() as u32)
+                    .filter(|&i| field == 0 || active[pick[i as usize]])
+                    .collect()
+            })
+            .collect()
     }
 }
 

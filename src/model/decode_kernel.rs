@@ -264,7 +264,11 @@ impl DecodeShape {
             0.0
         };
         let fwd = b * r * (passes * lfn + s * (heads + v) + shadow_head);
-        let skipped = if ray_grads { 0.0 } else { b * r * passes * first };
+        let skipped = if ray_grads {
+            0.0
+        } else {
+            b * r * passes * first
+        };
         (fwd, 2.0 * fwd - skipped)
     }
 }
@@ -285,7 +289,10 @@ fn matmul(
         return;
     }
     let last = |rows: usize, cols: usize, rs: usize, cs: usize| (rows - 1) * rs + (cols - 1) * cs;
-    assert!(last(m, n, dst_rs, dst_cs) < dst.len(), "matmul: dst too small");
+    assert!(
+        last(m, n, dst_rs, dst_cs) < dst.len(),
+        "matmul: dst too small"
+    );
     if k == 0 {
         if !accumulate {
             for i in 0..m {
@@ -296,8 +303,14 @@ fn matmul(
         }
         return;
     }
-    assert!(last(m, k, lhs_rs, lhs_cs) < lhs.len(), "matmul: lhs too small");
-    assert!(last(k, n, rhs_rs, rhs_cs) < rhs.len(), "matmul: rhs too small");
+    assert!(
+        last(m, k, lhs_rs, lhs_cs) < lhs.len(),
+        "matmul: lhs too small"
+    );
+    assert!(
+        last(k, n, rhs_rs, rhs_cs) < rhs.len(),
+        "matmul: rhs too small"
+    );
     // SAFETY: the asserts above keep every element each view addresses inside its slice; dst
     // does not alias lhs or rhs (a &mut and two & borrows).
     unsafe {
@@ -446,13 +459,7 @@ fn mlp_forward(
         } else {
             &before[l - 1][r0 * layer.fan_in..]
         };
-        dense_forward(
-            layer,
-            params,
-            input,
-            n,
-            &mut rest[0][r0 * layer.fan_out..],
-        );
+        dense_forward(layer, params, input, n, &mut rest[0][r0 * layer.fan_out..]);
     }
 }
 
@@ -539,6 +546,40 @@ struct FieldPass {
     shadow_affine: Vec<f32>,
     /// σ [R] (0 for the background and for rays off the ground).
     sigma: Vec<f32>,
+    /// With a support ([`DecodeOp::with_support`]): the rays this field is evaluated on, in
+    /// order; every per-ray array above then has one row per such ray. None: every ray.
+    rows: Option<Vec<u32>>,
+    /// With a support: each ray's row, [`INACTIVE`] where the field is not evaluated.
+    position: Vec<u32>,
+    /// With a support: the rows' inputs (ray coordinates, shadow lines), gathered.
+    inputs: Option<Vec<f32>>,
+    line_inputs: Option<Vec<f32>>,
+}
+
+/// A ray a field is not evaluated on ([`FieldPass::position`]).
+const INACTIVE: u32 = u32::MAX;
+
+impl FieldPass {
+    /// The row of ray `r`, None where the field is not evaluated on it.
+    fn row(&self, r: usize) -> Option<usize> {
+        match &self.rows {
+            None => Some(r),
+            Some(_) => match self.position[r] {
+                INACTIVE => None,
+                p => Some(p as usize),
+            },
+        }
+    }
+
+    /// The ray of row `i`.
+    fn ray(&self, i: usize) -> usize {
+        self.rows.as_ref().map_or(i, |rows| rows[i] as usize)
+    }
+
+    /// Number of rows.
+    fn len(&self) -> usize {
+        self.sigma.len()
+    }
 }
 
 /// One ray chunk's compositor activations.
@@ -582,11 +623,19 @@ pub enum RayInputs {
 pub struct DecodeOp {
     pub shape: DecodeShape,
     pub rays: RayInputs,
+    /// Per field (B·S lists), the rays it is evaluated on (sorted); None: all (see
+    /// [`DecodeOp::with_support`]).
+    support: Option<Vec<Vec<u32>>>,
     saved: Mutex<Saved>,
 }
 
 /// A held tensor's f32 values (contiguous, of length `len`).
-fn held_f32<'a>(storage: &'a Storage, layout: &Layout, what: &str, len: usize) -> Result<&'a [f32]> {
+fn held_f32<'a>(
+    storage: &'a Storage,
+    layout: &Layout,
+    what: &str,
+    len: usize,
+) -> Result<&'a [f32]> {
     let Storage::Cpu(cpu) = storage else {
         candle_core::bail!("decode kernel: {what} must be on the CPU")
     };
@@ -626,8 +675,30 @@ impl DecodeOp {
         DecodeOp {
             shape,
             rays,
+            support: None,
             saved: Mutex::new(Saved::default()),
         }
+    }
+
+    /// Evaluates field u only on the rays `support[u]` (sorted, in range): elsewhere the field
+    /// counts as absent — compositor weight 0 (log-weight −∞), ordering +∞, no shadow, no
+    /// colour, no gradient. For test-time refinement, where a slot's weight is negligible
+    /// outside its object's neighbourhood (`encode/refine.rs` decides where, and with what
+    /// margin). The background fields (s = 0) must keep every ray.
+    pub fn with_support(mut self, support: Vec<Vec<u32>>) -> Result<DecodeOp> {
+        let sh = &self.shape;
+        if support.len() != sh.scenes * sh.fields {
+            candle_core::bail!("decode kernel: a support per field is needed");
+        }
+        for (u, rows) in support.iter().enumerate() {
+            let sorted = rows.windows(2).all(|w| w[0] < w[1]);
+            let in_range = rows.last().is_none_or(|&r| (r as usize) < sh.rays);
+            if !sorted || !in_range || (u % sh.fields == 0 && rows.len() != sh.rays) {
+                candle_core::bail!("decode kernel: field {u}'s support is not valid");
+            }
+        }
+        self.support = Some(support);
+        Ok(self)
     }
 
     /// Length of the packed ray input (coords, lines, shift).
@@ -681,31 +752,62 @@ impl DecodeOp {
     /// The field passes: light field and heads of field u = b·S + s on all of scene b's rays.
     fn field_forward(&self, u: usize, fields: &[f32], shared: &[f32], rays: &Rays) -> FieldPass {
         let sh = &self.shape;
-        let (r, s) = (sh.rays, u % sh.fields);
+        let (r, s, in_dim) = (sh.rays, u % sh.fields, sh.in_dim);
         let params = &fields[u * sh.field_params..(u + 1) * sh.field_params];
-        let x = &rays.coords[u * r * sh.in_dim..(u + 1) * r * sh.in_dim];
-        let mut pass = FieldPass {
-            lfn: Activations::new(&sh.field, r),
-            color: Activations::new(&sh.shared.color, r),
-            rgb: vec![0f32; r * 3],
-            ordering: Activations::new(&sh.shared.ordering, r),
-            ..FieldPass::default()
+        let active = self.support.as_ref().map(|support| &support[u]);
+        let n_rows = active.map_or(r, Vec::len);
+        let gather = |src: &[f32], rows: &[u32]| -> Vec<f32> {
+            rows.iter()
+                .flat_map(|&ri| {
+                    src[ri as usize * in_dim..(ri as usize + 1) * in_dim]
+                        .iter()
+                        .copied()
+                })
+                .collect()
         };
+        let x_all = &rays.coords[u * r * in_dim..(u + 1) * r * in_dim];
         let casts = s > 0 && sh.shared.shadow.is_some();
-        let lines = rays
+        let lines_all = rays
             .lines
             .filter(|_| casts)
-            .map(|l| &l[u * r * sh.in_dim..(u + 1) * r * sh.in_dim]);
+            .map(|l| &l[u * r * in_dim..(u + 1) * r * in_dim]);
+        let mut pass = FieldPass {
+            lfn: Activations::new(&sh.field, n_rows),
+            color: Activations::new(&sh.shared.color, n_rows),
+            rgb: vec![0f32; n_rows * 3],
+            ordering: Activations::new(&sh.shared.ordering, n_rows),
+            inputs: active.map(|rows| gather(x_all, rows)),
+            line_inputs: active.and_then(|rows| lines_all.map(|l| gather(l, rows))),
+            rows: active.cloned(),
+            ..FieldPass::default()
+        };
+        if let Some(rows) = active {
+            pass.position = vec![INACTIVE; r];
+            for (i, &ri) in rows.iter().enumerate() {
+                pass.position[ri as usize] = i as u32;
+            }
+        }
+        let x = pass.inputs.take();
+        let x_rows: &[f32] = x.as_deref().unwrap_or(x_all);
+        let line_rows = pass.line_inputs.take();
+        let lines: Option<&[f32]> = line_rows.as_deref().or(lines_all);
         if lines.is_some() {
-            pass.shadow_lfn = Some(Activations::new(&sh.field, r));
+            pass.shadow_lfn = Some(Activations::new(&sh.field, n_rows));
         }
         let mut r0 = 0;
-        while r0 < r {
-            let n = CHUNK.min(r - r0);
-            mlp_forward(&sh.field, params, x, &mut pass.lfn, r0, n);
+        while r0 < n_rows {
+            let n = CHUNK.min(n_rows - r0);
+            mlp_forward(&sh.field, params, x_rows, &mut pass.lfn, r0, n);
             let features = pass.lfn.output();
             mlp_forward(&sh.shared.color, shared, features, &mut pass.color, r0, n);
-            mlp_forward(&sh.shared.ordering, shared, features, &mut pass.ordering, r0, n);
+            mlp_forward(
+                &sh.shared.ordering,
+                shared,
+                features,
+                &mut pass.ordering,
+                r0,
+                n,
+            );
             if let (Some(lines), Some(acts)) = (lines, pass.shadow_lfn.as_mut()) {
                 mlp_forward(&sh.field, params, lines, acts, r0, n);
             }
@@ -714,7 +816,7 @@ impl DecodeOp {
         for (c, l) in pass.rgb.iter_mut().zip(pass.color.output()) {
             *c = sigmoid(*l);
         }
-        pass.sigma = vec![0f32; r];
+        pass.sigma = vec![0f32; n_rows];
         if let (true, Some((w, b))) = (casts, sh.shared.shadow) {
             let f = sh.field.out_dim();
             let w = &shared[w..w + f];
@@ -728,14 +830,16 @@ impl DecodeOp {
                 .chunks_exact(f)
                 .map(|row| row.iter().zip(w).map(|(a, b)| a * b).sum::<f32>() + bias)
                 .collect();
-            for (ri, (sigma, a)) in pass.sigma.iter_mut().zip(&pass.shadow_affine).enumerate() {
+            for i in 0..n_rows {
                 let ground = match (sh.shadow_lines, rays.on_ground) {
-                    (true, Some(g)) => g[b0 + ri],
+                    (true, Some(g)) => g[b0 + pass.ray(i)],
                     _ => 1.0,
                 };
-                *sigma = softplus(SHADOW_LOGIT_GAIN as f32 * a) * ground;
+                pass.sigma[i] = softplus(SHADOW_LOGIT_GAIN as f32 * pass.shadow_affine[i]) * ground;
             }
         }
+        pass.inputs = x;
+        pass.line_inputs = line_rows;
         pass
     }
 
@@ -762,19 +866,29 @@ impl DecodeOp {
             lit: vec![0f32; n],
             colors: vec![0f32; n * s * 3],
         };
+        // Each (ray, field)'s row in its field pass; None where the field is not evaluated.
+        let rows: Vec<Option<usize>> = (0..n)
+            .flat_map(|i| scene.iter().map(move |f| f.row(r0 + i)))
+            .collect();
         for i in 0..n {
             let r = r0 + i;
-            let shift = &sh_row(rays.shift, b * sh.rays + r, s);
+            let shift = sh_row(rays.shift, b * sh.rays + r, s);
             let world = &mut pass.world[i * s..(i + 1) * s];
-            for (f, (w, sft)) in world.iter_mut().zip(shift.iter()).enumerate() {
-                *w = scene[f].ordering.output()[r] * scale + sft;
+            for f in 0..s {
+                world[f] = match rows[i * s + f] {
+                    Some(p) => scene[f].ordering.output()[p] * scale + shift[f],
+                    None => f32::INFINITY,
+                };
             }
             let front = world.iter().copied().fold(f32::INFINITY, f32::min);
             for f in 0..s {
+                let Some(p) = rows[i * s + f] else {
+                    continue;
+                };
                 let gap = (world[f] - front) / scale;
                 pass.gap[i * s + f] = gap;
                 let squashed = gap / (gap * gap + 1.0).sqrt();
-                pass.v_in[(i * s + f) * 2] = scene[f].ordering.output()[r];
+                pass.v_in[(i * s + f) * 2] = scene[f].ordering.output()[p];
                 pass.v_in[(i * s + f) * 2 + 1] = -squashed;
             }
         }
@@ -783,14 +897,18 @@ impl DecodeOp {
         let learned = pass.v.output();
         let mut scores = vec![0f32; s];
         for (i, row) in out.chunks_exact_mut(ch.count()).enumerate().take(n) {
-            let r = r0 + i;
+            let active = &rows[i * s..(i + 1) * s];
             for f in 0..s {
-                scores[f] = learned[i * s + f] - pass.gap[i * s + f] * slope;
+                scores[f] = match active[f] {
+                    Some(_) => learned[i * s + f] - pass.gap[i * s + f] * slope,
+                    None => f32::NEG_INFINITY,
+                };
             }
             let max = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
             let sum: f32 = scores.iter().map(|v| (v - max).exp()).sum();
             let log_sum = sum.ln();
-            let lit = (-(1..s).map(|f| scene[f].sigma[r]).sum::<f32>()).exp();
+            let sigma = |f: usize| active[f].map_or(0.0, |p| scene[f].sigma[p]);
+            let lit = (-(1..s).map(sigma).sum::<f32>()).exp();
             pass.lit[i] = lit;
             let mut rgb = [0f32; 3];
             for f in 0..s {
@@ -800,9 +918,12 @@ impl DecodeOp {
                 row[ch.log_weights() + f] = log_w;
                 row[ch.weights() + f] = w;
                 row[ch.ordering() + f] = pass.world[i * s + f];
-                row[ch.shadow() + f] = if f == 0 { 0.0 } else { scene[f].sigma[r] };
+                row[ch.shadow() + f] = if f == 0 { 0.0 } else { sigma(f) };
+                let Some(p) = active[f] else {
+                    continue;
+                };
                 for c in 0..3 {
-                    let mut color = scene[f].rgb[r * 3 + c];
+                    let mut color = scene[f].rgb[p * 3 + c];
                     if f == 0 {
                         color *= lit;
                     }
@@ -864,8 +985,7 @@ impl CustomOp3 for DecodeOp {
         let sh = &self.shape;
         let fields = storage_f32(fs, fl, "field parameters")?;
         let shared = storage_f32(ss, sl, "shared parameters")?;
-        if fields.len() != sh.scenes * sh.fields * sh.field_params
-            || shared.len() != sh.shared.len
+        if fields.len() != sh.scenes * sh.fields * sh.field_params || shared.len() != sh.shared.len
         {
             candle_core::bail!("decode kernel: parameters do not match the model's layout");
         }
@@ -889,10 +1009,7 @@ impl CustomOp3 for DecodeOp {
             })
         })?;
         *self.saved.lock().expect("decode kernel state") = saved;
-        Ok((
-            CpuStorage::F32(out),
-            Shape::from((sh.scenes, sh.rays, ch)),
-        ))
+        Ok((CpuStorage::F32(out), Shape::from((sh.scenes, sh.rays, ch))))
     }
 
     fn bwd(
@@ -910,7 +1027,12 @@ impl CustomOp3 for DecodeOp {
         let (s_guard, s_layout) = shared_params.storage_and_layout();
         let (r_guard, r_layout) = ray_input.storage_and_layout();
         let ch = sh.channels().count();
-        let grad_out = held_f32(&g_guard, g_layout, "output gradient", sh.scenes * sh.rays * ch)?;
+        let grad_out = held_f32(
+            &g_guard,
+            g_layout,
+            "output gradient",
+            sh.scenes * sh.rays * ch,
+        )?;
         let fields = held_f32(
             &f_guard,
             f_layout,
@@ -1078,14 +1200,26 @@ impl DecodeOp {
         let mut d_gap = vec![0f32; n * s];
         let mut d_slope = 0f32;
         let mut d_w = vec![0f32; s];
+        // Whether each (ray, field) was evaluated (always, without a support).
+        let active: Vec<bool> = (0..n)
+            .flat_map(|i| scene.iter().map(move |f| f.row(r0 + i).is_some()))
+            .collect();
         for i in 0..n {
             let r = r0 + i;
             let g = &grad_out[(b * sh.rays + r) * ch.count()..(b * sh.rays + r + 1) * ch.count()];
             let w = &pass.weights[i * s..(i + 1) * s];
+            let on = &active[i * s..(i + 1) * s];
             let colors = &pass.colors[i * s * 3..(i + 1) * s * 3];
             let lit = pass.lit[i];
+            let bg_row = scene[0]
+                .row(r)
+                .expect("the background is evaluated on every ray");
             let mut d_lit = 0f32;
             for f in 0..s {
+                if !on[f] {
+                    d_w[f] = 0.0;
+                    continue;
+                }
                 let mut dw = g[ch.weights() + f];
                 for c in 0..3 {
                     dw += g[c] * colors[f * 3 + c];
@@ -1093,7 +1227,7 @@ impl DecodeOp {
                     let d_shaded = w[f] * g[c] + g[ch.colors() + f * 3 + c];
                     if f == 0 {
                         out.color[(i * s) * 3 + c] = d_shaded * lit;
-                        d_lit += d_shaded * scene[0].rgb[r * 3 + c];
+                        d_lit += d_shaded * scene[0].rgb[bg_row * 3 + c];
                     } else {
                         out.color[(i * s + f) * 3 + c] = d_shaded;
                     }
@@ -1101,12 +1235,15 @@ impl DecodeOp {
                 d_w[f] = dw;
             }
             // σ_f lowers lit = exp(−Σσ); the σ output channel adds its own gradient.
-            for f in 1..s {
+            for f in (1..s).filter(|&f| on[f]) {
                 out.sigma[i * s + f] = -lit * d_lit + g[ch.shadow() + f];
             }
-            let g_log_sum: f32 = g[ch.log_weights()..ch.log_weights() + s].iter().sum();
+            let g_log_sum: f32 = (0..s)
+                .filter(|&f| on[f])
+                .map(|f| g[ch.log_weights() + f])
+                .sum();
             let w_dot: f32 = w.iter().zip(&d_w).map(|(a, b)| a * b).sum();
-            for f in 0..s {
+            for f in (0..s).filter(|&f| on[f]) {
                 let ds = g[ch.log_weights() + f] - w[f] * g_log_sum + w[f] * (d_w[f] - w_dot);
                 d_score[i * s + f] = ds;
                 // score = learned − gap·slope.
@@ -1137,7 +1274,8 @@ impl DecodeOp {
             let front = world.iter().copied().fold(f32::INFINITY, f32::min);
             let mut d_world = vec![0f32; s];
             let mut d_front = 0f32;
-            for f in 0..s {
+            let on = &active[i * s..(i + 1) * s];
+            for f in (0..s).filter(|&f| on[f]) {
                 let gap = pass.gap[i * s + f];
                 // squashed = gap / √(1 + gap²), fed to V negated.
                 let d_squashed = -d_v_in[(i * s + f) * 2 + 1];
@@ -1151,7 +1289,7 @@ impl DecodeOp {
                     d_world[f] += d_front;
                 }
             }
-            for f in 0..s {
+            for f in (0..s).filter(|&f| on[f]) {
                 let dw = d_world[f] + g[ch.ordering() + f];
                 out.ordering[i * s + f] = dw * scale + d_v_in[(i * s + f) * 2];
                 out.shift[i * s + f] = dw;
@@ -1180,7 +1318,13 @@ impl DecodeOp {
         let (r, s) = (sh.rays, u % sh.fields);
         let f_dim = sh.field.out_dim();
         let params = &fields[u * sh.field_params..(u + 1) * sh.field_params];
-        let x = &rays.coords[u * r * sh.in_dim..(u + 1) * r * sh.in_dim];
+        let in_dim = sh.in_dim;
+        let x = pass
+            .inputs
+            .as_deref()
+            .unwrap_or(&rays.coords[u * r * in_dim..(u + 1) * r * in_dim]);
+        let n_rows = pass.len();
+        let sparse = pass.rows.is_some();
         let mut d_shared = vec![0f32; shared.len()];
         let widest = sh
             .field
@@ -1193,19 +1337,26 @@ impl DecodeOp {
         let mut g_color = vec![0f32; CHUNK * 3];
         let casts = s > 0 && sh.shared.shadow.is_some();
         let b0 = u / sh.fields * r;
-        let lines = rays
+        let lines = pass.line_inputs.as_deref().or(rays
             .lines
             .filter(|_| casts)
-            .map(|l| &l[u * r * sh.in_dim..(u + 1) * r * sh.in_dim]);
+            .map(|l| &l[u * r * in_dim..(u + 1) * r * in_dim]));
         let mut g_affine = vec![0f32; CHUNK];
+        let mut g_ordering = vec![0f32; CHUNK];
+        // With a support, the rays' gradients go through a chunk buffer to their rays' rows.
+        let mut dx_rows = vec![0f32; if sparse { CHUNK * in_dim } else { 0 }];
         let mut r0 = 0;
-        while r0 < r {
-            let n = CHUNK.min(r - r0);
+        while r0 < n_rows {
+            let n = CHUNK.min(n_rows - r0);
             let features = pass.lfn.output();
             // Colour head: through the sigmoid.
-            for (i, g) in g_color[..n * 3].iter_mut().enumerate() {
-                let c = pass.rgb[r0 * 3 + i];
-                *g = grads.color[r0 * 3 + i] * c * (1.0 - c);
+            for i in 0..n {
+                let ray = pass.ray(r0 + i);
+                g_ordering[i] = grads.ordering[ray];
+                for c in 0..3 {
+                    let v = pass.rgb[(r0 + i) * 3 + c];
+                    g_color[i * 3 + c] = grads.color[ray * 3 + c] * v * (1.0 - v);
+                }
             }
             mlp_backward(
                 &sh.shared.color,
@@ -1226,7 +1377,7 @@ impl DecodeOp {
                 &pass.ordering,
                 r0,
                 n,
-                &grads.ordering[r0..r0 + n],
+                &g_ordering,
                 &mut d_shared,
                 Some(&mut d_head),
                 &mut scratch,
@@ -1238,12 +1389,13 @@ impl DecodeOp {
             let shadow_features = if let (true, Some((w, bias))) = (casts, sh.shared.shadow) {
                 let gain = SHADOW_LOGIT_GAIN as f32;
                 for i in 0..n {
+                    let ray = pass.ray(r0 + i);
                     let ground = match (sh.shadow_lines, rays.on_ground) {
-                        (true, Some(g)) => g[b0 + r0 + i],
+                        (true, Some(g)) => g[b0 + ray],
                         _ => 1.0,
                     };
                     let a = pass.shadow_affine[r0 + i];
-                    g_affine[i] = grads.sigma[r0 + i] * ground * gain * sigmoid(gain * a);
+                    g_affine[i] = grads.sigma[ray] * ground * gain * sigmoid(gain * a);
                 }
                 let source = match &pass.shadow_lfn {
                     Some(acts) => acts.output(),
@@ -1277,37 +1429,96 @@ impl DecodeOp {
             } else {
                 false
             };
-            // The light field on the ray.
-            mlp_backward(
-                &sh.field,
+            // The light field on the ray, and on its shadow line.
+            let rows = LfnRows {
+                pass,
                 params,
-                x,
-                &pass.lfn,
                 r0,
                 n,
+                in_dim,
+            };
+            rows.backward(
+                &sh.field,
+                x,
+                &pass.lfn,
                 &d_features,
                 d_params,
-                d_x.as_deref_mut().map(|d| &mut d[r0 * sh.in_dim..]),
+                d_x.as_deref_mut(),
+                &mut dx_rows,
                 &mut scratch,
             );
-            // …and on its shadow line.
             if let (true, Some(lines), Some(acts)) = (shadow_features, lines, &pass.shadow_lfn) {
-                mlp_backward(
+                rows.backward(
                     &sh.field,
-                    params,
                     lines,
                     acts,
-                    r0,
-                    n,
                     &d_head,
                     d_params,
-                    d_lines.as_deref_mut().map(|d| &mut d[r0 * sh.in_dim..]),
+                    d_lines.as_deref_mut(),
+                    &mut dx_rows,
                     &mut scratch,
                 );
             }
             r0 += n;
         }
         d_shared
+    }
+}
+
+/// Rows [r0, r0 + n) of a field pass, for the light field's backward.
+struct LfnRows<'a> {
+    pass: &'a FieldPass,
+    params: &'a [f32],
+    r0: usize,
+    n: usize,
+    in_dim: usize,
+}
+
+impl LfnRows<'_> {
+    /// The light field's backward on these rows of `input` (the rays' coordinates or shadow
+    /// lines): parameter gradients into `d_params`; the inputs' gradients into `d_rays` when
+    /// given — at the rows' rays, through `dx_rows` when the pass has a support.
+    #[allow(clippy::too_many_arguments)]
+    fn backward(
+        &self,
+        lfn: &MlpLayout,
+        input: &[f32],
+        acts: &Activations,
+        g: &[f32],
+        d_params: &mut [f32],
+        d_rays: Option<&mut [f32]>,
+        dx_rows: &mut [f32],
+        scratch: &mut Scratch,
+    ) {
+        let (r0, n, in_dim) = (self.r0, self.n, self.in_dim);
+        let run = |dx: Option<&mut [f32]>, d_params: &mut [f32], scratch: &mut Scratch| {
+            mlp_backward(
+                lfn,
+                self.params,
+                input,
+                acts,
+                r0,
+                n,
+                g,
+                d_params,
+                dx,
+                scratch,
+            )
+        };
+        match d_rays {
+            None => run(None, d_params, scratch),
+            Some(d) if self.pass.rows.is_none() => {
+                run(Some(&mut d[r0 * in_dim..]), d_params, scratch)
+            }
+            Some(d) => {
+                run(Some(&mut dx_rows[..]), d_params, scratch);
+                for i in 0..n {
+                    let ray = self.pass.ray(r0 + i);
+                    d[ray * in_dim..(ray + 1) * in_dim]
+                        .copy_from_slice(&dx_rows[i * in_dim..(i + 1) * in_dim]);
+                }
+            }
+        }
     }
 }
 
@@ -1318,6 +1529,7 @@ pub fn decode(
     lf: &LightFieldDecoder,
     fields: &SlotWeights,
     rays: &RayBatch,
+    support: Option<Vec<Vec<u32>>>,
 ) -> Result<Decoded> {
     let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
     let shape = DecodeShape::new(cfg, b, s, r);
@@ -1348,9 +1560,8 @@ pub fn decode(
         (Some((_, g)), true) => Some(g.flatten_all()?.to_vec1::<f32>()?),
         _ => None,
     };
-    let tracked = rays.coords.track_op()
-        || rays.shift.track_op()
-        || lines.is_some_and(|l| l.track_op());
+    let tracked =
+        rays.coords.track_op() || rays.shift.track_op() || lines.is_some_and(|l| l.track_op());
     let (ray_input, ray_inputs) = if tracked {
         let mut packed = vec![rays.coords.flatten_all()?];
         if let Some(l) = lines {
@@ -1370,11 +1581,11 @@ pub fn decode(
     };
     let ch = shape.channels();
     let has_shadow = cfg.shadow_head;
-    let out = field_params.apply_op3(
-        &shared,
-        &ray_input.contiguous()?,
-        DecodeOp::new(shape, ray_inputs),
-    )?;
+    let mut op = DecodeOp::new(shape, ray_inputs);
+    if let Some(support) = support {
+        op = op.with_support(support)?;
+    }
+    let out = field_params.apply_op3(&shared, &ray_input.contiguous()?, op)?;
     let colors = out
         .narrow(2, ch.colors(), 3 * s)?
         .contiguous()?
@@ -1387,8 +1598,6 @@ pub fn decode(
         log_weights: channel(ch.log_weights(), s)?,
         colors,
         ordering: channel(ch.ordering(), s)?,
-        shadow: has_shadow
-            .then(|| channel(ch.shadow(), s))
-            .transpose()?,
+        shadow: has_shadow.then(|| channel(ch.shadow(), s)).transpose()?,
     })
 }

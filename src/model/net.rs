@@ -2,8 +2,8 @@
 //! (hypernetworks, light fields, heads, compositor; or the volumetric baseline). It is
 //! differentiable; training and test-time refinement run through it.
 
-use super::*;
 use super::decode_kernel;
+use super::*;
 use candle_core::Tensor;
 use candle_nn::VarBuilder;
 use rand::rngs::StdRng;
@@ -182,7 +182,23 @@ impl ColfNet {
             return self.decode_reference(fields, rays);
         }
         self.check_fields(fields, rays)?;
-        decode_kernel::decode(&self.cfg, lf, fields, rays)
+        decode_kernel::decode(&self.cfg, lf, fields, rays, None)
+    }
+
+    /// [`ColfNet::decode`] with each field evaluated only on some rays: `support[b·S + s]` lists
+    /// (sorted) the rays of scene b on which field s is evaluated — all of them for the
+    /// background (s = 0). Elsewhere the field is absent: compositor weight 0, ordering +∞, no
+    /// shadow, no gradient (`decode_kernel::DecodeOp::with_support`). Always the fused kernel
+    /// (CPU, f32).
+    pub fn decode_with_support(
+        &self,
+        fields: &SlotWeights,
+        rays: &RayBatch,
+        support: Vec<Vec<u32>>,
+    ) -> candle_core::Result<Decoded> {
+        let lf = self.light_field_or_err()?;
+        self.check_fields(fields, rays)?;
+        decode_kernel::decode(&self.cfg, lf, fields, rays, Some(support))
     }
 
     fn check_fields(&self, fields: &SlotWeights, rays: &RayBatch) -> candle_core::Result<()> {

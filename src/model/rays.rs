@@ -301,7 +301,10 @@ fn encode_line_derivative(
         out[c] = *d as f32;
         let mut omega = std::f64::consts::PI;
         for f in 0..freqs {
-            let (sin, cos) = (encoded[6 + 12 * f + c] as f64, encoded[12 + 12 * f + c] as f64);
+            let (sin, cos) = (
+                encoded[6 + 12 * f + c] as f64,
+                encoded[12 + 12 * f + c] as f64,
+            );
             out[6 + 12 * f + c] = (omega * cos * d) as f32;
             out[12 + 12 * f + c] = (-omega * sin * d) as f32;
             omega *= 2.0;
@@ -507,7 +510,10 @@ mod tests {
                 let fd = (ahead.coords[i] as f64 - at.coords[i] as f64) / step;
                 assert!(close(fd, *a), "axis {axis}, coordinate {i}: {fd} vs {a}");
             }
-            let (ahead_l, at_l) = (&ahead.shadow_lines.as_ref().unwrap().0, &at.shadow_lines.as_ref().unwrap().0);
+            let (ahead_l, at_l) = (
+                &ahead.shadow_lines.as_ref().unwrap().0,
+                &at.shadow_lines.as_ref().unwrap().0,
+            );
             for (i, a) in analytic.shadow_lines.as_ref().unwrap().iter().enumerate() {
                 let fd = (ahead_l[i] as f64 - at_l[i] as f64) / step;
                 assert!(close(fd, *a), "axis {axis}, line value {i}: {fd} vs {a}");
