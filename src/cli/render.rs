@@ -22,7 +22,9 @@ compositor weights)\n\n\
 background; slotK.weight and slotK.order for slot K (compositor weight in [0, 1] and the \
 world-comparable ordering value)\n\n\
 Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written \
-atomically (a frame's files appear together, after the frame is rendered); SIGINT or SIGTERM \
+atomically (a frame's files appear together, after the frame is rendered) and replaces \
+whatever is at its path in DIR: a symbolic link there is replaced, never followed, so nothing is \
+written outside DIR. SIGINT or SIGTERM \
 removes the temporary files and exits 130 or 143, leaving finished frames intact. A progress \
 line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The \
 hypernetwork runs once per slot per run; rays are evaluated in chunks of a few hundred, one chunk \

@@ -21,7 +21,10 @@ novel views) with an L2 loss (+ --l1-weight L1) and a small penalty on the foreg
 Adam with a linear warm-up. Every step draws its randomness from (--seed, step), so a run \
 resumed with --resume from OUT.ckpt takes exactly the steps an uninterrupted run would. The \
 model file OUT and the checkpoint OUT.ckpt (model + optimizer moments + step, one file) are \
-written atomically every --checkpoint-every steps, at the end, and on SIGINT/SIGTERM. Every \
+written atomically every --checkpoint-every steps, at the end, and on SIGINT/SIGTERM. OUT, the \
+file you name, is written like a shell redirect (a symbolic link keeps pointing at the file it \
+names, which is replaced); the files colf-train names beside it (OUT.ckpt, OUT.log.jsonl, the \
+--keep-every snapshots) replace a link found at their path and never follow it. Every \
 step appends a JSON line to OUT.log.jsonl: step, loss, mse, psnr, obj_psnr (rays on objects), \
 fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s; \
 evaluations on --eval-data add lines with an \"eval\" object. A step with a non-finite loss or \
@@ -301,10 +304,9 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
                     .map(|s| s.to_string_lossy().into_owned())
                     .unwrap_or_default();
                 let dir = out.join(&scene.name);
-                std::fs::create_dir_all(&dir)
-                    .map_err(|e| anyhow::anyhow!("{}: cannot create: {e}", dir.display()))?;
+                crate::io::create_folder_in_folder(&dir)?;
                 let png = crate::image_io::encode_png_grey(view.image.w, view.image.h, &ids);
-                crate::io::write_atomic(&dir.join(format!("{stem}.proposal.png")), &png)?;
+                crate::io::write_in_folder(&dir.join(format!("{stem}.proposal.png")), &png)?;
             }
             if let Some(mask) = &view.mask {
                 let shown = view.path.display();
@@ -575,11 +577,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     let stop = crate::io::defer_signals();
     let mut trainer = Trainer::new(opts, args.resume)?;
     let log_path = trainer.opts.log_path();
-    let mut log_file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&log_path)
-        .map_err(|e| anyhow::anyhow!("{}: cannot open the log: {e}", log_path.display()))?;
+    let mut log_file = crate::io::open_log_in_folder(&log_path)?;
     eprintln!(
         "colf-train: {} scenes, {} parameters, step {} of {}, log {}",
         trainer.num_scenes(),

@@ -376,9 +376,7 @@ fn write_outputs(
     match args.layout {
         OutputLayout::Colf => {
             let dir = out.join(scene_dir_name(index));
-            let shown = dir.display().to_string();
-            std::fs::create_dir_all(&dir)
-                .with_context(|| format!("{shown}: cannot create the folder"))?;
+            crate::io::create_folder_in_folder(&dir)?;
             for (v, view) in render.views.iter().enumerate() {
                 let stem = view_stem(v);
                 png(&dir.join(format!("{stem}.png")), &view.rgb, 3)?;
@@ -392,7 +390,7 @@ fn write_outputs(
             let cameras = Cameras {
                 frames: frames.to_vec(),
             };
-            crate::io::write_atomic(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
+            crate::io::write_in_folder(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
             writer::write_json(&dir.join("scene.json"), &doc)
         }
         OutputLayout::Uorf => {
@@ -409,7 +407,7 @@ fn write_outputs(
                         format!("{} {} {} {}\n", row.x, row.y, row.z, row.w)
                     })
                     .collect();
-                crate::io::write_atomic(&out.join(format!("{stem}_RT.txt")), text.as_bytes())?;
+                crate::io::write_in_folder(&out.join(format!("{stem}_RT.txt")), text.as_bytes())?;
             }
             for (v, view) in render.moved.iter().flatten().enumerate() {
                 let stem = uorf_stem(index, v, args.views);
@@ -418,7 +416,7 @@ fn write_outputs(
             }
             if let Some(m) = args.moved {
                 let text = format!("{}\n{}\n", m.dx, m.dy);
-                crate::io::write_atomic(
+                crate::io::write_in_folder(
                     &out.join(format!("{index:03}_movement.txt")),
                     text.as_bytes(),
                 )?;
