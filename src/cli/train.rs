@@ -244,10 +244,14 @@ pub enum TrainCommand {
 or the runs of the model it was fine-tuned from, then its own): the data folder and its renderer, \
 the scenes, whether the data had masks (`masks_in_data`) and whether a loss or the ray sampling \
 used them (`masks_used`), the model it started from, the steps, the batch, the learning-rate \
-schedule and the loss weights. `masks_used` (top level) is true if any run used masks, false if \
-none did, and null, as is `training`, for a model whose file does not record its training (files \
-written before colf-train recorded it, such as the bundled `supervised` model, which was \
-trained with masks: docs/training.md).",
+schedule and the loss weights. The bundled `supervised` model's file predates the records: its \
+runs are written down from its recipe (`make model`), recognised by its identity, and each \
+carries a `reconstructed` note; a model trained from it (such as the bundled `blender` model) \
+lists them before its own. `unrecorded_init` is the identity of the model the first listed run \
+started from when nothing records how that model was trained (a file written before \
+colf-train recorded training, or a `colf-train init` file), else null. `masks_used` (top level) \
+is true if any listed run used masks, false if none did and the list starts from a fresh model, \
+and null when that is not known: no records (`training` is null too) or an unrecorded start.",
     after_help = "Examples:\n  colf-train info model.safetensors\n  colf-train info model.safetensors | jq '.training[] | {data, steps, masks_used}'"
 )]
 pub struct InfoArgs {
