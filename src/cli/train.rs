@@ -207,7 +207,7 @@ pub struct RunArgs {
     /// (repeatable; a later one wins where prefixes overlap). Adam moves a weight by about the
     /// learning rate a step whatever its gradient, so this is how some layers learn faster than
     /// the rest: e.g. `--lr-scale hypernet_bg.fc1.weight=20` for the background's input weights
-    /// grown at zero by `--set zero_background=false` (measured in docs/training.md, run b5:
+    /// grown at zero by `--set zero_background=false` (measured in docs/training-log.md, run b5:
     /// for that layer it did not help).
     #[arg(long, value_name = "PREFIX=FACTOR", value_parser = parse_lr_scale)]
     pub lr_scale: Vec<(String, f64)>,
