@@ -44,13 +44,17 @@ bench: build
 	$(RELEASE)/examples/bench --out target/bench/bench.json
 
 # The speed/accuracy curve of --adaptive, --prune and resolution on held-out scenes, for the
-# model MODEL (default: the bundled one): docs/tradeoff.md (table) and docs/tradeoff.png.
+# model MODEL (default: the bundled one): docs/tradeoff.md (table, with the figure of --adaptive
+# at its default ε) and docs/tradeoff.png. 100 scenes (300 frames), one run a frame, one thread:
+# about 25 minutes on the 2-core development machine; TRADEOFF_SCENES=5 for a quick look.
 MODEL ?= models/default.safetensors
-TRADEOFF_SCENES ?= 5
+TRADEOFF_SCENES ?= 100
+TRADEOFF_REPS ?= 1
+TRADEOFF_THREADS ?= 1
 tradeoff: build
 	$(CARGO) build --release --example tradeoff
-	$(RELEASE)/examples/tradeoff --model $(MODEL) --scenes $(TRADEOFF_SCENES) \
-	  --md docs/tradeoff.md --png docs/tradeoff.png
+	RAYON_NUM_THREADS=$(TRADEOFF_THREADS) $(RELEASE)/examples/tradeoff --model $(MODEL) \
+	  --scenes $(TRADEOFF_SCENES) --reps $(TRADEOFF_REPS) --md docs/tradeoff.md --png docs/tradeoff.png
 
 # Fuzz every input parser in-process (docs/fuzzing.md): FUZZ_ITERATIONS seeded, structure-aware
 # mutations each, under a 4 GiB address-space limit; failing inputs go to target/fuzz/<parser>/.

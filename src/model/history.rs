@@ -258,16 +258,16 @@ mod tests {
     fn masks_used_is_unknown_when_the_first_run_starts_from_an_unrecorded_model() {
         let from_unrecorded = run();
         assert_eq!(
-            unrecorded_init(&[from_unrecorded.clone()]),
+            unrecorded_init(std::slice::from_ref(&from_unrecorded)),
             Some("c1fd4506bf2ce4e6")
         );
-        assert_eq!(masks_used(&[from_unrecorded.clone()]), None);
+        assert_eq!(masks_used(std::slice::from_ref(&from_unrecorded)), None);
         let fresh = TrainingRun {
             init: None,
             preset: Some("small".into()),
             ..run()
         };
-        assert_eq!(unrecorded_init(&[fresh.clone()]), None);
+        assert_eq!(unrecorded_init(std::slice::from_ref(&fresh)), None);
         assert_eq!(
             masks_used(&[fresh.clone(), from_unrecorded.clone()]),
             Some(false)
@@ -295,7 +295,8 @@ mod tests {
         assert_eq!(runs.iter().map(|r| r.steps).sum::<u64>(), 102_250);
 
         let blender = run(); // starts from c1fd4506bf2ce4e6, used no masks
-        let (values, runs) = known_history(&[blender.clone()], "9d08eb4992c38067").unwrap();
+        let (values, runs) =
+            known_history(std::slice::from_ref(&blender), "9d08eb4992c38067").unwrap();
         assert_eq!(runs.len(), 7);
         assert_eq!(runs[6], blender);
         assert!(values[6].get("reconstructed").is_none());
@@ -305,7 +306,7 @@ mod tests {
             init: Some("0123456789abcdef".into()),
             ..run()
         };
-        let (_, runs) = known_history(&[unknown.clone()], "x").unwrap();
+        let (_, runs) = known_history(std::slice::from_ref(&unknown), "x").unwrap();
         assert_eq!(runs, vec![unknown]);
         assert_eq!(known_history(&[], "x").unwrap().1, vec![]);
     }
