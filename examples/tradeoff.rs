@@ -16,7 +16,8 @@
 //! (`RAYON_NUM_THREADS`) is stated with the times.
 //!
 //! Usage: `tradeoff --model M [--scenes 5] [--size 128] [--slots 7] [--eps 0,0.001,…]
-//!         [--prune 0.003,0.01] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]`
+//!         [--prune 0.003,0.01] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]
+//!         [--machine "the 2-core development machine"]`
 
 use anyhow::{bail, Context, Result};
 use colf::camera::{Cameras, Frame};
@@ -39,6 +40,8 @@ struct Args {
     reps: usize,
     md: Option<PathBuf>,
     png: Option<PathBuf>,
+    /// Where the times were taken, as the table says.
+    machine: String,
 }
 
 fn parse_args() -> Result<Args> {
@@ -52,6 +55,7 @@ fn parse_args() -> Result<Args> {
         reps: 3,
         md: None,
         png: None,
+        machine: "the 2-core development machine".into(),
     };
     let argv: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -75,6 +79,7 @@ fn parse_args() -> Result<Args> {
             "--reps" => a.reps = val.parse::<usize>()?.max(1),
             "--md" => a.md = Some(val.into()),
             "--png" => a.png = Some(val.into()),
+            "--machine" => a.machine = val.clone(),
             other => bail!("unknown argument {other}"),
         }
         i += 2;
@@ -366,8 +371,7 @@ fn main() -> Result<()> {
         "Model `{}` (identity `{identity}`), {} held-out clevr567 scenes (`colf-synth --split test \
 --seed 0 --size {}`), view 0 encoded in one pass with K = {} (`colf-encode --fast --camera`), views 1–3 rendered: \
 {frames} frames. Exact render: {:.1} ms per frame, PSNR {:.2} dB against ground truth. Times are \
-medians of {} run(s) per frame, summed over the frames, with {} rayon thread(s) on the 2-core \
-development machine; every configuration renders each frame in turn, so the ratios of one table \
+medians of {} run(s) per frame, summed over the frames, with {} rayon thread(s) on {}; every configuration renders each frame in turn, so the ratios of one table \
 share its conditions (compare rows of one table, not tables). Mean slots kept: {}.\n\n",
         model_path.display(),
         args.scenes,
@@ -377,6 +381,7 @@ share its conditions (compare rows of one table, not tables). Mean slots kept: {
         exact_gt,
         args.reps,
         rayon::current_num_threads(),
+        args.machine,
         slot_counts
             .iter()
             .map(|(p, n)| format!(
