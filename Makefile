@@ -46,7 +46,7 @@ bench: build
 # The speed/accuracy curve of --adaptive, --prune and resolution on held-out scenes, for the
 # model MODEL (default: the bundled one): docs/tradeoff.md (table, with the figure of --adaptive
 # at its default ε) and docs/tradeoff.png. 100 scenes (300 frames), one run a frame, one thread:
-# about 25 minutes on the 2-core development machine; TRADEOFF_SCENES=5 for a quick look.
+# 8 minutes on the busy 2-core development machine (2026-11-26); TRADEOFF_SCENES=5 for a quick look.
 MODEL ?= models/default.safetensors
 TRADEOFF_SCENES ?= 100
 TRADEOFF_REPS ?= 1
