@@ -50,13 +50,17 @@ bench-train: build
 	$(RELEASE)/examples/bench --train-only --out target/bench/bench-train.json
 
 # The speed/accuracy curve of --adaptive, --prune and resolution on held-out scenes, for the
-# model MODEL (default: the bundled one): docs/tradeoff.md (table) and docs/tradeoff.png.
+# model MODEL (default: the bundled one): docs/tradeoff.md (table, with the figure of --adaptive
+# at its default ε) and docs/tradeoff.png. 100 scenes (300 frames), one run a frame, one thread:
+# 8 minutes on the busy 2-core development machine (2026-11-26); TRADEOFF_SCENES=5 for a quick look.
 MODEL ?= models/default.safetensors
-TRADEOFF_SCENES ?= 5
+TRADEOFF_SCENES ?= 100
+TRADEOFF_REPS ?= 1
+TRADEOFF_THREADS ?= 1
 tradeoff: build
 	$(CARGO) build --release --example tradeoff
-	$(RELEASE)/examples/tradeoff --model $(MODEL) --scenes $(TRADEOFF_SCENES) \
-	  --md docs/tradeoff.md --png docs/tradeoff.png
+	RAYON_NUM_THREADS=$(TRADEOFF_THREADS) $(RELEASE)/examples/tradeoff --model $(MODEL) \
+	  --scenes $(TRADEOFF_SCENES) --reps $(TRADEOFF_REPS) --md docs/tradeoff.md --png docs/tradeoff.png
 
 # Fuzz every input parser in-process (docs/fuzzing.md): FUZZ_ITERATIONS seeded, structure-aware
 # mutations each, under a 4 GiB address-space limit; failing inputs go to target/fuzz/<parser>/.
@@ -117,11 +121,11 @@ demo: build
 # encoding) and deletes the large cyan one (slots 1 and 5: the encoding gave it a second slot,
 # hidden behind it in the input view). The sheet is docs/blender-sheet.png. The default model
 # also encodes this scene, less well: it draws the small green cylinder blue, and deleting the
-# large cyan one leaves a faint cyan haze (docs/training.md, run r2).
+# large cyan one leaves a faint cyan haze (docs/training-log.md, run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
 
-# The `supervised` model's recipe (docs/training.md, "The supervised model"; it was the default
+# The `supervised` model's recipe (docs/training.md; runs in docs/training-log.md, "The supervised model"; it was the default
 # model until the unsupervised one matched it): clevr567 scenes at 64², 100 held
 # out; a model with slot frames at the attention centroids, a locality bound, 6 Fourier
 # frequencies on the rays and a zero background latent. Stage 1 (2,250 steps, 400 scenes): weak
@@ -137,7 +141,7 @@ demo-blender: build
 # rate 5e-5, half cosine from step 4,000 to 5e-6. Re-running `make model` resumes from the
 # checkpoints in $(MODEL_RUN) (a stopped run loses nothing; a stage is skipped once the next has
 # started). Its default encoding is then set (`colf-train configure`: 12 slots, best of 4 tries,
-# 50 refinement steps, the best measured in README "Refinement"); the result is evaluated on
+# 50 refinement steps, the best measured in docs/refinement.md); the result is evaluated on
 # the held-out scenes ($(MODEL_RUN)/eval.json with that encoding, eval-fast.json in one pass),
 # plotted ($(MODEL_RUN)/training.png) and copied to models/supervised.safetensors.
 MODEL_RUN ?= out/model
@@ -198,12 +202,12 @@ model: build
 	$(call eval_model,$(MODEL_RUN),$(MODEL_RUN)/model.safetensors)
 	cp $(MODEL_RUN)/model.safetensors models/supervised.safetensors
 
-# Adaptation to a new look without labels (README, "Train on your own scenes"; docs/training.md,
+# Adaptation to a new look without labels (README, "Train on your own scenes"; docs/training-log.md,
 # "Adapting to Blender's CLEVR"): the bundled `supervised` model, trained on colf-synth's analytic scenes,
 # fine-tuned on 320 Blender-rendered clevr567 scenes at 64² whose mask files are deleted first,
 # so no ground-truth mask can be read (held-out Blender scenes keep theirs, for scoring only).
 # 1,500 steps of 4 views x 256 rays, learning rate 5e-5 after 200 warm-up steps, half cosine
-# from step 700 to 5e-6 (longer runs lose the decomposition: docs/training.md). Held-out scores
+# from step 700 to 5e-6 (longer runs lose the decomposition: docs/training-log.md). Held-out scores
 # during training come from a validation set (seed 7); the test set is scored at the end.
 # Needs Blender (apt-get install blender). Re-running resumes.
 ADAPT_RUN ?= out/adapt
@@ -226,13 +230,13 @@ model-blender: build
 	$(call eval_model,$(ADAPT_RUN),$(ADAPT_RUN)/blender.safetensors)
 	cp $(ADAPT_RUN)/blender.safetensors models/blender.safetensors
 
-# Objects without labels (docs/training.md, "Training without labels"): the bundled default
+# Objects without labels (docs/training-log.md, "Training without labels"): the bundled default
 # model. The mask-supervised recipe (make model) from a fresh model, with object proposals
 # computed from the images (--proposals) where that recipe reads ground-truth masks. The training
 # sets are written without their mask files, so no label can be read; the held-out test scenes
 # keep theirs, for scoring only. Stage u1 = the supervised stages 1-2 in one run, 32,000 steps on
 # 400 scenes at a constant learning rate, both mask losses on proposals from the start (a longer
-# u1 bought nothing: docs/training.md); u2-u5 follow the supervised stages 3-6 (2,000 scenes;
+# u1 bought nothing: docs/training-log.md); u2-u5 follow the supervised stages 3-6 (2,000 scenes;
 # uniform rays; shadows; 4 views a scene), u5 without the compositor's mask loss (the proposals'
 # borders are rougher than the objects'). The result gets the same default encoding as the
 # supervised model and is scored: $(UNSUP_RUN)/model.safetensors, the analytic-only model that
@@ -291,7 +295,7 @@ model-default:
 	$(MAKE) model-unsupervised
 	$(MAKE) model-both
 
-# One model for both looks, without labels (docs/training.md, run r2): the bundled default
+# One model for both looks, without labels (docs/training-log.md, run r2): the bundled default
 # model. The analytic model of `make model-unsupervised` ($(UNSUP_RUN)/model.safetensors) grows a background
 # that reads the image (--set background_reader=true) and trains on 600 Blender scenes, 600 of
 # its own analytic ones and 400 with a randomised look, all without mask files; object

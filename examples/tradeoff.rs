@@ -9,11 +9,15 @@
 //! Per configuration: the render time (median of `--reps` runs per frame, summed over frames)
 //! and the speed-up over the exact render; PSNR against the exact render (8-bit, as the PNGs);
 //! the PSNR loss against ground truth, mean PSNR(exact, GT) − mean PSNR(config, GT); and the
-//! share of (slot, pixel) light-field evaluations done. Writes a Markdown table (`--md`) and a
-//! plot (`--png`: speed-up against PSNR loss), and prints the table.
+//! share of the foreground light-field evaluations of an exact render done (a slot on a pixel's
+//! ray, and on its shadow line for a model that casts shadows along the light). Writes a
+//! Markdown table (`--md`) and a plot (`--png`: speed-up against PSNR loss), and prints the
+//! table and the figure of `--adaptive` at its default ε. The rayon thread count
+//! (`RAYON_NUM_THREADS`) is stated with the times.
 //!
 //! Usage: `tradeoff --model M [--scenes 5] [--size 128] [--slots 7] [--eps 0,0.001,…]
-//!         [--prune 0.003,0.01] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]`
+//!         [--prune 0.003,0.01] [--reps 3] [--md docs/tradeoff.md] [--png docs/tradeoff.png]
+//!         [--machine "the 2-core development machine"]`
 
 use anyhow::{bail, Context, Result};
 use colf::camera::{Cameras, Frame};
@@ -36,6 +40,8 @@ struct Args {
     reps: usize,
     md: Option<PathBuf>,
     png: Option<PathBuf>,
+    /// Where the times were taken, as the table says.
+    machine: String,
 }
 
 fn parse_args() -> Result<Args> {
@@ -49,6 +55,7 @@ fn parse_args() -> Result<Args> {
         reps: 3,
         md: None,
         png: None,
+        machine: "the 2-core development machine".into(),
     };
     let argv: Vec<String> = std::env::args().skip(1).collect();
     let mut i = 0;
@@ -72,6 +79,7 @@ fn parse_args() -> Result<Args> {
             "--reps" => a.reps = val.parse::<usize>()?.max(1),
             "--md" => a.md = Some(val.into()),
             "--png" => a.png = Some(val.into()),
+            "--machine" => a.machine = val.clone(),
             other => bail!("unknown argument {other}"),
         }
         i += 2;
@@ -363,8 +371,8 @@ fn main() -> Result<()> {
         "Model `{}` (identity `{identity}`), {} held-out clevr567 scenes (`colf-synth --split test \
 --seed 0 --size {}`), view 0 encoded in one pass with K = {} (`colf-encode --fast --camera`), views 1–3 rendered: \
 {frames} frames. Exact render: {:.1} ms per frame, PSNR {:.2} dB against ground truth. Times are \
-medians of {} runs per frame on the 2-core development machine (other jobs make times noisy: compare \
-rows of one table, not tables). Mean slots kept: {}.\n\n",
+medians of {} run(s) per frame, summed over the frames, with {} rayon thread(s) on {}; every configuration renders each frame in turn, so the ratios of one table \
+share its conditions (compare rows of one table, not tables). Mean slots kept: {}.\n\n",
         model_path.display(),
         args.scenes,
         args.size,
@@ -372,6 +380,8 @@ rows of one table, not tables). Mean slots kept: {}.\n\n",
         1e3 * exact_t / frames.max(1) as f64,
         exact_gt,
         args.reps,
+        rayon::current_num_threads(),
+        args.machine,
         slot_counts
             .iter()
             .map(|(p, n)| format!(
@@ -398,6 +408,25 @@ rows of one table, not tables). Mean slots kept: {}.\n\n",
             r.evaluated
                 .map_or("".into(), |v| format!("{:.0} %", 100.0 * v))
         ));
+    }
+    let default_eps = colf::render::adaptive::RECOMMENDED_EPS;
+    match rows
+        .iter()
+        .find(|r| r.prune == 0.0 && r.eps == Some(default_eps))
+    {
+        Some(d) => md.push_str(&format!(
+            "\n**`--adaptive` at its default ε = {default_eps}: {:.2}× faster than the exact render, \
+PSNR loss vs ground truth {:+.3} dB** ({:.1} ms against {:.1} ms a frame; {:.1} % of the \
+foreground light-field evaluations).\n",
+            d.speedup,
+            d.loss,
+            d.ms,
+            1e3 * exact_t / frames.max(1) as f64,
+            100.0 * d.evaluated.unwrap_or(0.0)
+        )),
+        None => md.push_str(&format!(
+            "\n(The default ε = {default_eps} of `--adaptive` was not among `--eps`.)\n"
+        )),
     }
     match best {
         Some(b) => md.push_str(&format!(

@@ -213,18 +213,46 @@ pub struct AtomicOutput {
     sink: Sink,
 }
 
+/// Whether an output path's existing link or special file is followed.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Follow {
+    /// A file the user named: links to regular files and special files are written through.
+    UserNamed,
+    /// A file the stage names inside its output folder: replaced, never followed.
+    Never,
+}
+
 enum Sink {
     Temp(LiveTemp, std::io::BufWriter<std::fs::File>),
     Through(std::io::BufWriter<std::fs::File>),
 }
 
 impl AtomicOutput {
-    /// Opens `path` for writing.
+    /// Opens `path`, a file the user named (`-o FILE`), for writing: a link to a regular file
+    /// has its target replaced, and a device or FIFO is written through, as a shell redirect
+    /// would (see [`write_atomic_with`]).
     pub fn create(path: &Path) -> Result<AtomicOutput> {
+        Self::open(path, Follow::UserNamed)
+    }
+
+    /// Opens `path`, a file a stage names itself inside its output folder (a frame, a mask,
+    /// a scene file, a checkpoint), for writing: whatever is at `path` — a link, a device, a
+    /// FIFO — is replaced by a regular file at commit, never opened or followed, so nothing is
+    /// written outside the folder (see [`write_in_folder`]).
+    pub fn create_in_folder(path: &Path) -> Result<AtomicOutput> {
+        Self::open(path, Follow::Never)
+    }
+
+    fn open(path: &Path, follow: Follow) -> Result<AtomicOutput> {
         let shown = path.display().to_string();
         let buffered = |file: std::fs::File| std::io::BufWriter::with_capacity(1 << 16, file);
-        let target = match std::fs::metadata(path) {
-            Ok(meta) if !meta.is_file() => {
+        let existing = match follow {
+            Follow::UserNamed => std::fs::metadata(path).ok(),
+            // Renamed over whatever is there; nothing at the path is ever opened.
+            Follow::Never => None,
+        };
+        let target = match existing {
+            Some(meta) if !meta.is_file() => {
                 let file = std::fs::OpenOptions::new()
                     .write(true)
                     .open(path)
@@ -235,7 +263,7 @@ impl AtomicOutput {
                     sink: Sink::Through(buffered(file)),
                 });
             }
-            Ok(_) if path.is_symlink() => std::fs::canonicalize(path)
+            Some(_) if path.is_symlink() => std::fs::canonicalize(path)
                 .with_context(|| format!("{shown}: cannot resolve the link"))?,
             _ => path.to_path_buf(),
         };
@@ -308,7 +336,9 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     write_atomic_with(path, |w| w.write_all(bytes).map_err(Into::into))
 }
 
-/// Writes an output file with `write`, which streams its bytes to the writer it is given.
+/// Writes an output file the user named (`-o FILE`, `colf-train --out MODEL`) with `write`,
+/// which streams its bytes to the writer it is given. (Files a stage names itself inside an
+/// output folder go through [`write_in_folder`] instead, which never follows a link.)
 ///
 /// A regular file (or a missing one) is written atomically: a temporary file in the same
 /// folder is written, flushed and renamed over the target, so a failed or interrupted run never
@@ -323,6 +353,54 @@ pub fn write_atomic_with(
     let mut out = AtomicOutput::create(path)?;
     write(&mut out).with_context(|| format!("{}: write failed", path.display()))?;
     out.commit()
+}
+
+/// Writes `bytes` to `path`, a file a stage names itself inside an output folder (frames,
+/// masks, EXRs, scene files, checkpoints, kept snapshots): atomically, like [`write_atomic`],
+/// but whatever is at `path` is replaced by the new regular file and never followed, so a link
+/// planted there (`out/frame_0000.png -> ../victim.png`) is replaced and its target untouched.
+pub fn write_in_folder(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut out = AtomicOutput::create_in_folder(path)?;
+    out.write_all(bytes)
+        .with_context(|| format!("{}: write failed", path.display()))?;
+    out.commit()
+}
+
+/// Makes the folder `path`, which a stage names itself inside its output folder (colf-synth's
+/// `scene_NNNNN`), with its missing parents: a link found at `path` is removed and a real
+/// folder made in its place, so files written into it stay inside the output folder.
+pub fn create_folder_in_folder(path: &Path) -> Result<()> {
+    let shown = path.display();
+    if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
+        std::fs::remove_file(path).with_context(|| format!("{shown}: cannot replace the link"))?;
+    }
+    std::fs::create_dir_all(path).with_context(|| format!("{shown}: cannot create the folder"))?;
+    // create_dir_all accepts a link that appeared in between; a real folder is required.
+    match std::fs::symlink_metadata(path) {
+        Ok(m) if m.is_dir() => Ok(()),
+        _ => bail!("{shown}: is not a folder (a link or a file appeared in its place)"),
+    }
+}
+
+/// Opens `path`, a log a stage names itself beside its output, for appending: a link or
+/// special file found there is removed first (a fresh log is started), and the file is opened
+/// without following links, so appending never writes through a planted link.
+pub fn open_log_in_folder(path: &Path) -> Result<std::fs::File> {
+    let shown = path.display();
+    if std::fs::symlink_metadata(path).is_ok_and(|m| !m.is_file()) {
+        std::fs::remove_file(path)
+            .with_context(|| format!("{shown}: cannot replace it with a regular file"))?;
+    }
+    let mut options = std::fs::OpenOptions::new();
+    options.create(true).append(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::OpenOptionsExt;
+        options.custom_flags(libc::O_NOFOLLOW);
+    }
+    options
+        .open(path)
+        .with_context(|| format!("{shown}: cannot open the log"))
 }
 
 /// Checks, before a long run, that [`write_atomic`] will be able to write `path`: it is not a
@@ -441,6 +519,64 @@ mod tests {
         write_atomic(&link, b"new").unwrap();
         assert!(file_type(&link).is_symlink());
         assert_eq!(std::fs::read(&target).unwrap(), b"new");
+    }
+
+    /// Issue 38: a file a stage names inside its output folder replaces a planted link (to a
+    /// file, to a missing file, to a folder) or FIFO, and never writes the link's target.
+    #[cfg(unix)]
+    #[test]
+    fn files_named_in_a_folder_replace_links_and_never_follow_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let victim = dir.path().join("victim.png");
+        std::fs::write(&victim, b"victim").unwrap();
+        let out = dir.path().join("out");
+        std::fs::create_dir(&out).unwrap();
+        let targets = [
+            victim.clone(),
+            dir.path().join("missing.png"),
+            dir.path().to_path_buf(),
+        ];
+        for (i, target) in targets.iter().enumerate() {
+            let link = out.join(format!("frame_{i}.png"));
+            std::os::unix::fs::symlink(target, &link).unwrap();
+            write_in_folder(&link, b"frame").unwrap();
+            assert!(
+                file_type(&link).is_file(),
+                "{} still a link",
+                link.display()
+            );
+            assert_eq!(std::fs::read(&link).unwrap(), b"frame");
+        }
+        let fifo = out.join("fifo.png");
+        let c_path = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+        assert_eq!(unsafe { libc::mkfifo(c_path.as_ptr(), 0o644) }, 0);
+        write_in_folder(&fifo, b"frame").unwrap();
+        assert!(file_type(&fifo).is_file());
+        assert_eq!(std::fs::read(&victim).unwrap(), b"victim");
+        assert!(!dir.path().join("missing.png").exists());
+        assert_eq!(
+            std::fs::read_dir(&out).unwrap().count(),
+            4,
+            "temporary files left"
+        );
+
+        // A planted link to a folder where a stage makes its own folder is replaced too, and a
+        // planted link where it appends a log: the log starts afresh, the victim untouched.
+        let elsewhere = dir.path().join("elsewhere");
+        std::fs::create_dir(&elsewhere).unwrap();
+        let scene = out.join("scene_00000");
+        std::os::unix::fs::symlink(&elsewhere, &scene).unwrap();
+        create_folder_in_folder(&scene).unwrap();
+        assert!(file_type(&scene).is_dir());
+        create_folder_in_folder(&scene).unwrap();
+        let log = out.join("m.log.jsonl");
+        std::os::unix::fs::symlink(&victim, &log).unwrap();
+        writeln!(open_log_in_folder(&log).unwrap(), "line").unwrap();
+        writeln!(open_log_in_folder(&log).unwrap(), "more").unwrap();
+        assert!(file_type(&log).is_file());
+        assert_eq!(std::fs::read(&log).unwrap(), b"line\nmore\n");
+        assert_eq!(std::fs::read(&victim).unwrap(), b"victim");
+        assert_eq!(std::fs::read_dir(&elsewhere).unwrap().count(), 0);
     }
 
     #[test]

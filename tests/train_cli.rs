@@ -598,8 +598,25 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         assert_eq!(run["masks_in_data"], false, "{run}");
         assert_eq!(run["proposals"], true, "{run}");
     }
+    assert!(default["unrecorded_init"].is_null());
+    // Issue 38: `supervised` predates the records; its recipe's six runs are written down,
+    // marked as such, and say it used masks. `blender` was fine-tuned from it without labels:
+    // its own run is its file's, the six before it the supervised model's, so it used masks.
     let supervised = info(&models.join("supervised.safetensors"));
-    assert!(supervised["training"].is_null() && supervised["masks_used"].is_null());
+    let runs = supervised["training"].as_array().unwrap();
+    assert_eq!(runs.len(), 6, "{supervised}");
+    assert!(runs.iter().all(|r| r["reconstructed"].is_string()));
+    assert_eq!(supervised["masks_used"], true);
+    assert!(supervised["unrecorded_init"].is_null());
+    let blender = info(&models.join("blender.safetensors"));
+    let runs = blender["training"].as_array().unwrap();
+    assert_eq!(runs.len(), 7, "{blender}");
+    assert_eq!(runs[..6], supervised["training"].as_array().unwrap()[..]);
+    assert_eq!(runs[6]["init"], supervised["identity"]);
+    assert_eq!(runs[6]["masks_used"], false);
+    assert!(runs[6].get("reconstructed").is_none());
+    assert_eq!(blender["masks_used"], true);
+    assert!(blender["unrecorded_init"].is_null());
     let junk = dir.path().join("junk.safetensors");
     std::fs::write(&junk, b"not a model").unwrap();
     let out = Command::cargo_bin("colf-train")
@@ -615,4 +632,40 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         "{err}"
     );
     assert!(out.stdout.is_empty());
+}
+
+/// Issue 38: a run that starts from a model with no records (here a `colf-train init` file)
+/// cannot know what trained that model: `masks_used` is null, not false, and
+/// `unrecorded_init` names the model; a model fine-tuned from it inherits both.
+#[test]
+fn a_run_from_a_model_with_no_records_says_its_start_is_unrecorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let unlabelled = unlabelled_copy(&data(dir.path()), dir.path());
+    let start = dir.path().join("start.safetensors");
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["init", "--seed", "5", "-o"])
+        .arg(&start)
+        .assert()
+        .success();
+    let start_id = info(&start)["identity"].clone();
+    assert!(info(&start)["training"].is_null() && info(&start)["masks_used"].is_null());
+    let first = dir.path().join("first.safetensors");
+    train(&unlabelled, &first, 2, &["--init", start.to_str().unwrap()]);
+    let described = info(&first);
+    assert_eq!(described["training"].as_array().unwrap().len(), 1);
+    assert_eq!(described["training"][0]["masks_used"], false);
+    assert!(described["masks_used"].is_null(), "{described}");
+    assert_eq!(described["unrecorded_init"], start_id);
+    let second = dir.path().join("second.safetensors");
+    train(
+        &unlabelled,
+        &second,
+        2,
+        &["--init", first.to_str().unwrap()],
+    );
+    let described = info(&second);
+    assert_eq!(described["training"].as_array().unwrap().len(), 2);
+    assert!(described["masks_used"].is_null());
+    assert_eq!(described["unrecorded_init"], start_id);
 }

@@ -195,8 +195,8 @@ fn write_renders(
     for (v, frame) in renders.iter().enumerate() {
         let base = dir.join(format!("{scene}_v{v}"));
         let png = crate::image_io::encode_png_rgb(frame.width, frame.height, &frame.rgb);
-        crate::io::write_atomic(&base.with_extension("png"), &png)?;
-        crate::io::write_atomic(&base.with_extension("mask.png"), &frame.mask_png()?)?;
+        crate::io::write_in_folder(&base.with_extension("png"), &png)?;
+        crate::io::write_in_folder(&base.with_extension("mask.png"), &frame.mask_png()?)?;
     }
     Ok(())
 }

@@ -22,7 +22,9 @@ compositor weights)\n\n\
 background; slotK.weight and slotK.order for slot K (compositor weight in [0, 1] and the \
 world-comparable ordering value)\n\n\
 Masks hold 8-bit labels while K < 255 and 16-bit labels beyond. Every file is written \
-atomically (a frame's files appear together, after the frame is rendered); SIGINT or SIGTERM \
+atomically (a frame's files appear together, after the frame is rendered) and replaces \
+whatever is at its path in DIR: a symbolic link there is replaced, never followed, so nothing is \
+written outside DIR. SIGINT or SIGTERM \
 removes the temporary files and exits 130 or 143, leaving finished frames intact. A progress \
 line per frame goes to stderr (-q silences it). Codes encoded by another model are refused. The \
 hypernetwork runs once per slot per run; rays are evaluated in chunks of a few hundred, one chunk \
@@ -32,10 +34,11 @@ its memory does not grow with the image size; with --exr a frame's float channel
 bytes a pixel, are gathered before its EXR is written, and --adaptive renders a whole frame at \
 once (docs/reliability.md has the measured figures).\n\n\
 Without --adaptive the render is exact. --adaptive [EPS] first renders the compositor weights \
-at 1/4 resolution, dilates each slot's weight map by one coarse pixel, and then evaluates a slot \
-at full resolution only where that weight exceeds EPS (default 0.03); the background is always \
-evaluated. A slot left out of a pixel has weight 0 and ordering value +inf in the EXR. The \
-speed/accuracy trade is measured in docs/tradeoff.md.\n\n\
+(and the shadows slots cast) at 1/4 resolution, dilates each slot's maps by one coarse pixel, \
+and then evaluates a slot at full resolution only where its weight exceeds EPS (default 0.03), \
+and its shadow only where the shadow's density does; the background is always evaluated. A \
+slot left out of a pixel has weight 0 and ordering value +inf in the EXR. The speed/accuracy \
+trade is measured in docs/tradeoff.md.\n\n\
 A volumetric model (colf-train init --preset volumetric: the uORF-style baseline) is rendered \
 by sampling --samples N points per ray (default: the model's, 64); its EXR ordering channel \
 holds each slot's expected depth along the ray. --frames A..B renders a subset (half-open, like Rust ranges: 0..10 \
@@ -75,9 +78,10 @@ pub struct RenderArgs {
     #[arg(long, value_name = "M")]
     pub model: Option<String>,
 
-    /// Adaptive rendering: render the compositor weights at 1/4 resolution first, then evaluate
-    /// each slot at full resolution only where its dilated coarse weight exceeds EPS (the
-    /// background always). Bare --adaptive uses EPS = 0.03. Light-field models only.
+    /// Adaptive rendering: render the compositor weights and shadows at 1/4 resolution first,
+    /// then evaluate each slot at full resolution only where its dilated coarse weight exceeds
+    /// EPS, and its shadow where the shadow's coarse density does (the background always). Bare
+    /// --adaptive uses EPS = 0.03. Light-field models only.
     #[arg(long, value_name = "EPS", num_args = 0..=1, default_missing_value = "0.03",
           value_parser = crate::cli::parse::non_negative_f32)]
     pub adaptive: Option<f32>,

@@ -21,7 +21,10 @@ novel views) with an L2 loss (+ --l1-weight L1) and a small penalty on the foreg
 Adam with a linear warm-up. Every step draws its randomness from (--seed, step), so a run \
 resumed with --resume from OUT.ckpt takes exactly the steps an uninterrupted run would. The \
 model file OUT and the checkpoint OUT.ckpt (model + optimizer moments + step, one file) are \
-written atomically every --checkpoint-every steps, at the end, and on SIGINT/SIGTERM. Every \
+written atomically every --checkpoint-every steps, at the end, and on SIGINT/SIGTERM. OUT, the \
+file you name, is written like a shell redirect (a symbolic link keeps pointing at the file it \
+names, which is replaced); the files colf-train names beside it (OUT.ckpt, OUT.log.jsonl, the \
+--keep-every snapshots) replace a link found at their path and never follow it. Every \
 step appends a JSON line to OUT.log.jsonl: step, loss, mse, psnr, obj_psnr (rays on objects), \
 fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s; \
 evaluations on --eval-data add lines with an \"eval\" object. A step with a non-finite loss or \
@@ -204,7 +207,7 @@ pub struct RunArgs {
     /// (repeatable; a later one wins where prefixes overlap). Adam moves a weight by about the
     /// learning rate a step whatever its gradient, so this is how some layers learn faster than
     /// the rest: e.g. `--lr-scale hypernet_bg.fc1.weight=20` for the background's input weights
-    /// grown at zero by `--set zero_background=false` (measured in docs/training.md, run b5:
+    /// grown at zero by `--set zero_background=false` (measured in docs/training-log.md, run b5:
     /// for that layer it did not help).
     #[arg(long, value_name = "PREFIX=FACTOR", value_parser = parse_lr_scale)]
     pub lr_scale: Vec<(String, f64)>,
@@ -247,10 +250,14 @@ pub enum TrainCommand {
 or the runs of the model it was fine-tuned from, then its own): the data folder and its renderer, \
 the scenes, whether the data had masks (`masks_in_data`) and whether a loss or the ray sampling \
 used them (`masks_used`), the model it started from, the steps, the batch, the learning-rate \
-schedule and the loss weights. `masks_used` (top level) is true if any run used masks, false if \
-none did, and null, as is `training`, for a model whose file does not record its training (files \
-written before colf-train recorded it, such as the bundled `supervised` model, which was \
-trained with masks: docs/training.md).",
+schedule and the loss weights. The bundled `supervised` model's file predates the records: its \
+runs are written down from its recipe (`make model`), recognised by its identity, and each \
+carries a `reconstructed` note; a model trained from it (such as the bundled `blender` model) \
+lists them before its own. `unrecorded_init` is the identity of the model the first listed run \
+started from when nothing records how that model was trained (a file written before \
+colf-train recorded training, or a `colf-train init` file), else null. `masks_used` (top level) \
+is true if any listed run used masks, false if none did and the list starts from a fresh model, \
+and null when that is not known: no records (`training` is null too) or an unrecorded start.",
     after_help = "Examples:\n  colf-train info model.safetensors\n  colf-train info model.safetensors | jq '.training[] | {data, steps, masks_used}'"
 )]
 pub struct InfoArgs {
@@ -307,10 +314,9 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
                     .map(|s| s.to_string_lossy().into_owned())
                     .unwrap_or_default();
                 let dir = out.join(&scene.name);
-                std::fs::create_dir_all(&dir)
-                    .map_err(|e| anyhow::anyhow!("{}: cannot create: {e}", dir.display()))?;
+                crate::io::create_folder_in_folder(&dir)?;
                 let png = crate::image_io::encode_png_grey(view.image.w, view.image.h, &ids);
-                crate::io::write_atomic(&dir.join(format!("{stem}.proposal.png")), &png)?;
+                crate::io::write_in_folder(&dir.join(format!("{stem}.proposal.png")), &png)?;
             }
             if let Some(mask) = &view.mask {
                 let shown = view.path.display();
@@ -582,11 +588,7 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     let stop = crate::io::defer_signals();
     let mut trainer = Trainer::new(opts, args.resume)?;
     let log_path = trainer.opts.log_path();
-    let mut log_file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&log_path)
-        .map_err(|e| anyhow::anyhow!("{}: cannot open the log: {e}", log_path.display()))?;
+    let mut log_file = crate::io::open_log_in_folder(&log_path)?;
     eprintln!(
         "colf-train: {} scenes, {} parameters, step {} of {}, log {}",
         trainer.num_scenes(),

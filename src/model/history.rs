@@ -4,7 +4,8 @@
 //!
 //! The records describe; they are not part of the model's identity (the weights and config
 //! are), so older files, which have none, keep their identities, and `colf-train info` prints
-//! `"training": null` for them. Whether a run read ground-truth masks is recorded as
+//! `"training": null` for them — except the bundled `supervised` model, whose runs are written
+//! down from its recipe in `bundled_records.json` and recognised by its identity. Whether a run read ground-truth masks is recorded as
 //! `masks_used`: true when a loss or the ray sampling used them. A dataset's masks may still be
 //! read to report FG-ARI in the training log; `masks_in_data` says whether there were any.
 
@@ -103,22 +104,97 @@ pub fn to_json(runs: &[TrainingRun]) -> String {
     serde_json::to_string(runs).expect("training records serialise")
 }
 
-/// Whether any run used masks; `None` for a model with no records.
+/// Whether any run used masks: `Some(true)` if one did; `Some(false)` only if none did and the
+/// records reach back to a fresh model; `None` (unknown) for a model with no records, or one
+/// whose first recorded run started from a model that has none ([`unrecorded_init`]).
 pub fn masks_used(runs: &[TrainingRun]) -> Option<bool> {
-    (!runs.is_empty()).then(|| runs.iter().any(|r| r.masks_used))
+    if runs.iter().any(|r| r.masks_used) {
+        Some(true)
+    } else if runs.is_empty() || unrecorded_init(runs).is_some() {
+        None
+    } else {
+        Some(false)
+    }
+}
+
+/// The identity of the model the first recorded run started from, when it has one: that
+/// model's own training is not in the records (a file written before colf-train recorded
+/// training, or a `colf-train init` model).
+pub fn unrecorded_init(runs: &[TrainingRun]) -> Option<&str> {
+    runs.first().and_then(|r| r.init.as_deref())
+}
+
+/// Records of the bundled models whose files predate training records, keyed by identity
+/// (`bundled_records.json`: the `supervised` model's runs, written down from its recipe).
+/// Records are not part of a model's identity, so a file's identity says which model it is.
+const BUNDLED_RECORDS: &str = include_str!("bundled_records.json");
+
+#[derive(Deserialize)]
+struct BundledRecord {
+    identity: String,
+    /// Each a [`TrainingRun`] with a `reconstructed` note saying where it came from.
+    runs: Vec<serde_json::Value>,
+}
+
+/// The written-down records of the bundled model `identity` (each with its `reconstructed`
+/// note), if it is one whose file predates training records.
+pub fn bundled_records(identity: &str) -> Option<Vec<serde_json::Value>> {
+    let table: Vec<BundledRecord> =
+        serde_json::from_str(BUNDLED_RECORDS).expect("bundled_records.json is valid");
+    table
+        .into_iter()
+        .find(|r| r.identity == identity)
+        .map(|r| r.runs)
+}
+
+/// A model's training history as far as it is known: the file's records, preceded by the
+/// written-down records of a bundled model they start from (or that the file is), as JSON
+/// values (written-down runs carry their `reconstructed` note) and as parsed runs.
+pub fn known_history(
+    own: &[TrainingRun],
+    identity: &str,
+) -> Result<(Vec<serde_json::Value>, Vec<TrainingRun>)> {
+    let mut values: Vec<serde_json::Value> = own
+        .iter()
+        .map(serde_json::to_value)
+        .collect::<Result<_, _>>()?;
+    let mut runs = own.to_vec();
+    // Each step reaches one model further back; a bundled chain is a few models long.
+    for _ in 0..8 {
+        let start = match runs.first() {
+            Some(first) => first.init.clone(),
+            None => Some(identity.to_string()),
+        };
+        let Some(earlier) = start.as_deref().and_then(bundled_records) else {
+            break;
+        };
+        let parsed = earlier
+            .iter()
+            .map(|v| serde_json::from_value::<TrainingRun>(v.clone()))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| anyhow!("bundled_records.json: {e}"))?;
+        values.splice(0..0, earlier);
+        runs.splice(0..0, parsed);
+    }
+    Ok((values, runs))
 }
 
 /// What `colf-train info` prints of a model read from `file`: identity, size, config and
-/// training records (`null` when the file has none).
+/// training records (`null` when nothing is known), completed by the written-down records of
+/// the bundled models ([`known_history`]); `unrecorded_init` names the model the first known
+/// run started from when its training is not known, and `masks_used` is then `null` unless a
+/// known run used masks.
 pub fn describe(model: &super::Colf, file: &str) -> Result<serde_json::Value> {
-    let runs = model.training();
+    let identity = model.identity()?;
+    let (values, runs) = known_history(model.training(), &identity)?;
     Ok(serde_json::json!({
         "file": file,
-        "identity": model.identity()?,
+        "identity": identity,
         "parameters": model.num_parameters(),
         "config": model.config(),
-        "training": (!runs.is_empty()).then_some(runs),
-        "masks_used": masks_used(runs),
+        "training": (!values.is_empty()).then_some(values),
+        "unrecorded_init": unrecorded_init(&runs),
+        "masks_used": masks_used(&runs),
     }))
 }
 
@@ -167,7 +243,6 @@ mod tests {
         ];
         assert_eq!(parse(&to_json(&runs), "m").unwrap(), runs);
         assert_eq!(masks_used(&runs), Some(true));
-        assert_eq!(masks_used(&runs[..1]), Some(false));
         assert_eq!(masks_used(&[]), None);
         // A run without learning-rate factors is written as before they existed.
         let plain = TrainingRun {
@@ -175,6 +250,65 @@ mod tests {
             ..run()
         };
         assert!(!to_json(&[plain]).contains("lr_scale"));
+    }
+
+    /// Issue 38: a history whose first run starts from a model with no records cannot say
+    /// that no masks were used; one that reaches a fresh model can.
+    #[test]
+    fn masks_used_is_unknown_when_the_first_run_starts_from_an_unrecorded_model() {
+        let from_unrecorded = run();
+        assert_eq!(
+            unrecorded_init(std::slice::from_ref(&from_unrecorded)),
+            Some("c1fd4506bf2ce4e6")
+        );
+        assert_eq!(masks_used(std::slice::from_ref(&from_unrecorded)), None);
+        let fresh = TrainingRun {
+            init: None,
+            preset: Some("small".into()),
+            ..run()
+        };
+        assert_eq!(unrecorded_init(std::slice::from_ref(&fresh)), None);
+        assert_eq!(
+            masks_used(&[fresh.clone(), from_unrecorded.clone()]),
+            Some(false)
+        );
+        let supervised = TrainingRun {
+            masks_used: true,
+            ..from_unrecorded
+        };
+        assert_eq!(masks_used(&[supervised]), Some(true));
+    }
+
+    /// The bundled `supervised` model's written-down records parse, reach a fresh model, used
+    /// masks and end in the run that started from stage 5; a history starting from it is
+    /// completed with them, and an unknown start is left as it is.
+    #[test]
+    fn bundled_records_complete_the_supervised_chain() {
+        let (values, runs) = known_history(&[], "c1fd4506bf2ce4e6").unwrap();
+        assert_eq!(runs.len(), 6);
+        assert_eq!(values.len(), 6);
+        assert!(values.iter().all(|v| v["reconstructed"].is_string()));
+        assert_eq!(runs[0].preset.as_deref(), Some("small"));
+        assert_eq!(unrecorded_init(&runs), None);
+        assert_eq!(masks_used(&runs), Some(true));
+        assert_eq!(runs[5].init.as_deref(), Some("03efe939d096181c"));
+        assert_eq!(runs.iter().map(|r| r.steps).sum::<u64>(), 102_250);
+
+        let blender = run(); // starts from c1fd4506bf2ce4e6, used no masks
+        let (values, runs) =
+            known_history(std::slice::from_ref(&blender), "9d08eb4992c38067").unwrap();
+        assert_eq!(runs.len(), 7);
+        assert_eq!(runs[6], blender);
+        assert!(values[6].get("reconstructed").is_none());
+        assert_eq!(masks_used(&runs), Some(true));
+
+        let unknown = TrainingRun {
+            init: Some("0123456789abcdef".into()),
+            ..run()
+        };
+        let (_, runs) = known_history(std::slice::from_ref(&unknown), "x").unwrap();
+        assert_eq!(runs, vec![unknown]);
+        assert_eq!(known_history(&[], "x").unwrap().1, vec![]);
     }
 
     #[test]

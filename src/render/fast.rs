@@ -21,7 +21,10 @@
 //!
 //! Adaptive rendering passes an `active` mask (ray × field): a field is evaluated only on the
 //! rays where it is active and takes no part in those rays' composition elsewhere (weight 0,
-//! ordering +∞). The background (field 0) must always be active.
+//! ordering +∞). The background (field 0) must always be active. For a model that reads shadows
+//! along the light (`shadow_light`), [`Active::shadows`] may say separately on which rays a
+//! slot's shadow line is evaluated (a slot darkens pixels it does not win, and wins pixels its
+//! shadow does not reach); a shadow not evaluated casts none.
 
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
@@ -351,6 +354,19 @@ fn grow(v: &mut Vec<f32>, n: usize) {
     }
 }
 
+/// Which light-field evaluations a render does (adaptive rendering; see the module
+/// documentation): both masks are ray × field, row-major like [`RayOutput::weights`].
+#[derive(Clone, Copy, Debug)]
+pub struct Active<'a> {
+    /// Where each field is evaluated on the ray and composited; the background column must be
+    /// all true.
+    pub fields: &'a [bool],
+    /// Where each foreground slot's shadow line is evaluated, for a model that reads shadows
+    /// along the light ([`FastRenderer::shadows_along_light`]); `None`: where its field is.
+    /// (A model that reads shadows from the ray's own features evaluates them with the field.)
+    pub shadows: Option<&'a [bool]>,
+}
+
 /// A scene ready for the fast renderer: host copies of the weights, made once.
 pub struct FastRenderer {
     kind: Kind,
@@ -418,6 +434,38 @@ impl FastRenderer {
         samples: Option<usize>,
         active: Option<&[bool]>,
     ) -> Result<RayOutput> {
+        let active = active.map(|fields| Active {
+            fields,
+            shadows: None,
+        });
+        self.render_with(origins, dirs, samples, active)
+    }
+
+    /// Renders light-field rays with the evaluations `active` names (see [`Active`]).
+    pub fn render_active(
+        &self,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        active: Active,
+    ) -> Result<RayOutput> {
+        self.render_with(origins, dirs, None, Some(active))
+    }
+
+    /// True for a light-field model whose slots cast shadows read along the light
+    /// (`Config::shadow_light`, and shadows not dropped): its shadow evaluations can be masked
+    /// apart from its fields ([`Active::shadows`]).
+    pub fn shadows_along_light(&self) -> bool {
+        matches!(&self.kind, Kind::LightField(lf)
+            if lf.shadow.as_ref().is_some_and(|sh| sh.to_light.is_some()))
+    }
+
+    fn render_with(
+        &self,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        samples: Option<usize>,
+        active: Option<Active>,
+    ) -> Result<RayOutput> {
         let s = self.fields();
         let r = origins.len();
         if dirs.len() != r {
@@ -425,13 +473,15 @@ impl FastRenderer {
         }
         crate::model::rays::check_rays(origins, dirs)?;
         if let Some(a) = active {
-            if a.len() != r * s {
-                bail!(
-                    "active mask of {} entries for {r} rays × {s} fields",
-                    a.len()
-                );
+            for (what, mask) in [("active", Some(a.fields)), ("shadow", a.shadows)] {
+                if let Some(mask) = mask.filter(|m| m.len() != r * s) {
+                    bail!(
+                        "{what} mask of {} entries for {r} rays × {s} fields",
+                        mask.len()
+                    );
+                }
             }
-            if a.chunks_exact(s).any(|row| !row[0]) {
+            if a.fields.chunks_exact(s).any(|row| !row[0]) {
                 bail!("the background must be evaluated on every ray");
             }
         }
@@ -454,7 +504,11 @@ impl FastRenderer {
                     dirs,
                     |scratch, start, rays, out| {
                         let n = rays.0.len();
-                        let active = active.map(|a| &a[start * s..(start + n) * s]);
+                        let rows = start * s..(start + n) * s;
+                        let active = active.map(|a| Active {
+                            fields: &a.fields[rows.clone()],
+                            shadows: a.shadows.map(|m| &m[rows.clone()]),
+                        });
                         self.lf_chunk(lf, scratch, rays.0, rays.1, active, out)
                     },
                 )?;
@@ -495,7 +549,7 @@ impl FastRenderer {
         sc: &mut Scratch,
         origins: &[DVec3],
         dirs: &[DVec3],
-        active: Option<&[bool]>,
+        active: Option<Active>,
         out: ChunkOut,
     ) -> Result<()> {
         let s = self.fields();
@@ -525,14 +579,16 @@ impl FastRenderer {
         for si in 0..s {
             self.lf_field(lf, sc, si, origins, dirs, active, out.shadow)?;
         }
-        self.lf_scores(lf, sc, n, active);
-        self.lf_composite(lf, sc, n, active, out);
+        let fields = active.map(|a| a.fields);
+        self.lf_scores(lf, sc, n, fields);
+        self.lf_composite(lf, sc, n, fields, out);
         Ok(())
     }
 
     /// Stage 1 of [`Self::lf_chunk`]: field `si`'s light field on the rays it is active on —
-    /// colours and orderings into `sc`, and for a foreground slot with a shadow head its shadow
-    /// density into `shadow`.
+    /// colours and orderings into `sc` — and, for a foreground slot with a shadow head, its
+    /// shadow density into `shadow`: from its shadow lines on the rays `active.shadows` names
+    /// (`shadow_light`), or from the ray features where the field is active.
     #[allow(clippy::too_many_arguments)]
     fn lf_field(
         &self,
@@ -541,54 +597,55 @@ impl FastRenderer {
         si: usize,
         origins: &[DVec3],
         dirs: &[DVec3],
-        active: Option<&[bool]>,
+        active: Option<Active>,
         shadow: &mut [f32],
     ) -> Result<()> {
         let s = self.fields();
         let n = origins.len();
         let in_dim = lf.in_dim;
         let h2 = lf.head_first.output;
-        let is_active = |ri: usize, si: usize| active.is_none_or(|a| a[ri * s + si]);
+        let is_active = |ri: usize| active.is_none_or(|a| a.fields[ri * s + si]);
+        let inv = &self.inverses[si];
+        let shadow_head = lf.shadow.as_ref().filter(|_| si > 0);
+        // Shadow density along the light, as `ShadowHead`: the field on the line from the light
+        // through the ray's ground point, on the rays the shadow mask names.
+        if let Some((sh, to_light)) = shadow_head.and_then(|sh| Some((sh, sh.to_light?))) {
+            let casts = |ri: usize| match active.and_then(|a| a.shadows) {
+                Some(m) => m[ri * s + si],
+                None => is_active(ri),
+            };
+            sc.lit_rows.clear();
+            for ri in (0..n).filter(|&ri| casts(ri)) {
+                if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
+                    let j = sc.lit_rows.len();
+                    let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
+                    encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
+                    sc.lit_rows.push(ri);
+                }
+            }
+            if !sc.lit_rows.is_empty() {
+                let x_w = lf.run_field(si, sc.lit_rows.len(), sc);
+                for (j, &ri) in sc.lit_rows.iter().enumerate() {
+                    shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
+                }
+            }
+        }
         sc.rows.clear();
-        sc.rows.extend((0..n).filter(|&ri| is_active(ri, si)));
+        sc.rows.extend((0..n).filter(|&ri| is_active(ri)));
         let m = sc.rows.len();
         if m == 0 {
             return Ok(());
         }
         // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
-        let inv = &self.inverses[si];
         for (j, &ri) in sc.rows.iter().enumerate() {
             let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
             encode_line(out, inv, origins[ri], dirs[ri], lf.scene_scale, lf.freqs);
         }
         let x_w = lf.run_field(si, m, sc);
-        // Shadow density of a foreground slot, as `ShadowHead`: from the features of the
-        // rays (in a), or of their shadow lines (`shadow_light`).
-        if let (Some(sh), true) = (&lf.shadow, si > 0) {
-            match sh.to_light {
-                None => {
-                    for (j, &ri) in sc.rows.iter().enumerate() {
-                        shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
-                    }
-                }
-                Some(to_light) => {
-                    // Lines go through c (the features in a stay for the heads).
-                    sc.lit_rows.clear();
-                    for &ri in &sc.rows {
-                        if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
-                            let j = sc.lit_rows.len();
-                            let out = &mut sc.c[j * in_dim..(j + 1) * in_dim];
-                            encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
-                            sc.lit_rows.push(ri);
-                        }
-                    }
-                    std::mem::swap(&mut sc.a, &mut sc.c);
-                    let x_w = lf.run_field(si, sc.lit_rows.len(), sc);
-                    for (j, &ri) in sc.lit_rows.iter().enumerate() {
-                        shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
-                    }
-                    std::mem::swap(&mut sc.a, &mut sc.c);
-                }
+        // Shadow density from the ray's own features (no `shadow_light`).
+        if let Some(sh) = shadow_head.filter(|sh| sh.to_light.is_none()) {
+            for (j, &ri) in sc.rows.iter().enumerate() {
+                shadow[ri * s + si] = sh.sigma(&sc.a[j * x_w..(j + 1) * x_w]);
             }
         }
         // Heads (features in a).

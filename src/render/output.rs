@@ -201,7 +201,7 @@ impl PngRows {
     ) -> Result<PngRows> {
         let shown = path.display().to_string();
         let file = SharedOutput(std::rc::Rc::new(std::cell::RefCell::new(
-            crate::io::AtomicOutput::create(path)?,
+            crate::io::AtomicOutput::create_in_folder(path)?,
         )));
         let mut encoder = png::Encoder::new(file.clone(), w, h);
         encoder.set_color(colour);
@@ -341,7 +341,7 @@ impl FrameFiles {
         let exr = match self.exr {
             Some((path, planes, rows)) => {
                 let bytes = planes.into_exr(width, rows)?;
-                let mut out = crate::io::AtomicOutput::create(&path)?;
+                let mut out = crate::io::AtomicOutput::create_in_folder(&path)?;
                 std::io::Write::write_all(&mut out, &bytes)
                     .with_context(|| format!("{}: write failed", path.display()))?;
                 Some(out)

@@ -414,9 +414,7 @@ fn write_outputs(
     match args.layout {
         OutputLayout::Colf => {
             let dir = out.join(scene_dir_name(index));
-            let shown = dir.display().to_string();
-            std::fs::create_dir_all(&dir)
-                .with_context(|| format!("{shown}: cannot create the folder"))?;
+            crate::io::create_folder_in_folder(&dir)?;
             for (v, view) in render.views.iter().enumerate() {
                 let stem = view_stem(v);
                 png(&dir.join(format!("{stem}.png")), &view.rgb, 3)?;
@@ -430,7 +428,7 @@ fn write_outputs(
             let cameras = Cameras {
                 frames: frames.to_vec(),
             };
-            crate::io::write_atomic(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
+            crate::io::write_in_folder(&dir.join("transforms.json"), cameras.to_json().as_bytes())?;
             writer::write_json(&dir.join("scene.json"), &doc)
         }
         OutputLayout::Uorf => {

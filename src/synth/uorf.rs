@@ -159,9 +159,9 @@ pub fn write_scene(
         png(format!("{s}_mask.png"), &grey(&view.mask, &levels[v]), 1)?;
         let pose = frames[v].camera_to_world;
         let rt = matrix4_text(&(pose * flip));
-        crate::io::write_atomic(&out.join(format!("{s}_RT.txt")), rt.as_bytes())?;
+        crate::io::write_in_folder(&out.join(format!("{s}_RT.txt")), rt.as_bytes())?;
         let azi = matrix3_text(&azimuth_rotation(&pose));
-        crate::io::write_atomic(&out.join(format!("{s}_azi_rot.txt")), azi.as_bytes())?;
+        crate::io::write_in_folder(&out.join(format!("{s}_azi_rot.txt")), azi.as_bytes())?;
     }
     doc["uorf_mask_levels"] = json!(levels);
     if let (Some(m), Some(moved)) = (args.moved, render.moved.as_ref()) {
@@ -192,7 +192,7 @@ pub fn write_scene(
             )?;
         }
         let text = format!("{}\n{}\n", m.dx, m.dy);
-        crate::io::write_atomic(
+        crate::io::write_in_folder(
             &out.join(format!("{index:03}_movement.txt")),
             text.as_bytes(),
         )?;

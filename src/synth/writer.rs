@@ -1,7 +1,7 @@
 //! Files of a rendered scene: PNG images and masks, `transforms.json`, `scene.json`. Every file
 //! is written atomically (temporary file + rename), so an interrupted run leaves no partial file.
 
-use crate::io::write_atomic;
+use crate::io::write_in_folder;
 use anyhow::{Context, Result};
 use image::{ExtendedColorType, ImageEncoder};
 use std::path::Path;
@@ -23,7 +23,7 @@ pub fn png_bytes(pixels: &[u8], w: u32, h: u32, channels: usize) -> Result<Vec<u
 /// Writes an 8-bit PNG atomically.
 pub fn write_png(path: &Path, pixels: &[u8], w: u32, h: u32, channels: usize) -> Result<()> {
     let bytes = png_bytes(pixels, w, h, channels).with_context(|| path.display().to_string())?;
-    write_atomic(path, &bytes)
+    write_in_folder(path, &bytes)
 }
 
 /// Writes pretty JSON (with a final newline) atomically.
@@ -31,7 +31,7 @@ pub fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
     let mut text = serde_json::to_string_pretty(value)
         .with_context(|| format!("{}: JSON encoding failed", path.display()))?;
     text.push('\n');
-    write_atomic(path, text.as_bytes())
+    write_in_folder(path, text.as_bytes())
 }
 
 #[cfg(test)]

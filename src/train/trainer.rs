@@ -661,7 +661,7 @@ impl Trainer {
             history::METADATA_KEY.into(),
             history::to_json(&self.training_records()),
         );
-        crate::io::write_atomic(
+        crate::io::write_in_folder(
             &self.opts.checkpoint_path(),
             &serialize_f32(&tensors, &meta),
         )
@@ -716,7 +716,7 @@ impl Trainer {
                     self.write_model_and_checkpoint(&model_bytes, &host)?;
                 }
                 if keep {
-                    crate::io::write_atomic(&self.opts.snapshot_path(self.step), &model_bytes)?;
+                    crate::io::write_in_folder(&self.opts.snapshot_path(self.step), &model_bytes)?;
                 }
             }
         }
