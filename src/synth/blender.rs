@@ -9,7 +9,7 @@
 use super::hash::mix64;
 use super::presets::Preset;
 use super::render::RenderedView;
-use super::room::PartShape;
+use super::room::{FloorTexture, PartShape};
 use super::scene::{spherical, Object};
 use super::shading::{albedo_of_srgb8, Ground};
 use super::{layout_frames, MoveSpec, SampledScene, SceneRender, SynthOptions};
@@ -20,6 +20,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde_json::{json, Value};
+use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -165,8 +166,8 @@ fn chair_parts_json(o: &Object) -> Option<Value> {
     Some(Value::Array(parts))
 }
 
-/// The job entry of one scene; its PNGs go to `tmp`. A room's floor texture is baked into
-/// `tmp` here.
+/// The job entry of one scene; its PNGs go to `tmp` (and a room's floor image is there, see
+/// [`bake_floors`]).
 fn scene_job(
     args: &SynthOptions,
     index: u64,
@@ -232,14 +233,35 @@ fn scene_job(
         let Ground::Floor(texture) = &sampled.scene.ground else {
             bail!("scene {index}: a room without a floor texture");
         };
-        let path = tmp.join(format!("{index}_floor.png"));
-        let pixels = texture.bake(room.half_extent, FLOOR_TEXELS);
-        super::writer::write_png(&path, &pixels, FLOOR_TEXELS, FLOOR_TEXELS, 3)?;
-        s["floor_texture"] = json!(path);
+        s["floor_texture"] = json!(tmp.join(floor_image_name(texture)));
         s["floor_size"] = json!(2.0 * room.half_extent);
         s["walls"] = serde_json::to_value(room.walls())?;
     }
     Ok(s)
+}
+
+/// The file name of a floor texture's baked image: one per texture of a family, shared by
+/// the scenes on that floor.
+fn floor_image_name(texture: &FloorTexture) -> String {
+    format!("floor-{}-{}.png", texture.family, texture.index)
+}
+
+/// Bakes the floor image of every distinct floor texture of `sampled` into `tmp`.
+fn bake_floors(sampled: &[(SampledScene, Vec<Frame>)], tmp: &Path) -> Result<()> {
+    let mut floors: BTreeMap<String, (&FloorTexture, f64)> = BTreeMap::new();
+    for (s, _) in sampled {
+        if let (Some(room), Ground::Floor(texture)) = (&s.scene.room, &s.scene.ground) {
+            floors
+                .entry(floor_image_name(texture))
+                .or_insert((texture, room.half_extent));
+        }
+    }
+    floors
+        .into_par_iter()
+        .try_for_each(|(name, (texture, half_extent))| {
+            let pixels = texture.bake(half_extent, FLOOR_TEXELS);
+            super::writer::write_png(&tmp.join(name), &pixels, FLOOR_TEXELS, FLOOR_TEXELS, 3)
+        })
 }
 
 /// Reads back the views Blender wrote for one scene.
@@ -297,6 +319,7 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
         })
         .collect::<Result<_>>()?;
     let jobs = blender.jobs.clamp(1, n.max(1) as usize);
+    bake_floors(&sampled, tmp.path())?;
     let scene_jobs: Vec<Value> = sampled
         .par_iter()
         .enumerate()
