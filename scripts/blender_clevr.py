@@ -12,7 +12,9 @@ centre, no lights, no bounces, no dithering, the "Standard" view transform), whi
 colf-synth decodes into the mask. A scene's `extra_scenes` (uORF's scene manipulation) are
 rendered after it, each with its own objects and lights and the scene's cameras. After each scene it prints `colf-scene-done INDEX` on
 stdout. The scene follows the CLEVR recipe: CLEVR shapes with a matte "rubber" material on a
-large grey floor, three area lights (key, fill, back).
+large grey floor, three area lights (key, fill, back). For the room presets an object may
+instead be a list of parts (boxes and cylinders, joined into one mesh: a chair), the floor
+carries an image texture (the procedural floor colf-synth baked) and walls stand around it.
 """
 
 import json
@@ -100,6 +102,21 @@ def principled(name, rgb, roughness, specular):
     return m
 
 
+def textured_floor(path):
+    """A matte floor whose base colour is the image at `path` (8-bit sRGB), spread over the
+    plane's UV square: the plane's corner (-, -) is the image's bottom-left."""
+    m = principled("floor", (1.0, 1.0, 1.0), 1.0, 0.2)
+    nodes = m.node_tree.nodes
+    tex = nodes.new("ShaderNodeTexImage")
+    tex.image = bpy.data.images.load(path)
+    tex.image.colorspace_settings.name = "sRGB"
+    tex.interpolation = "Linear"
+    tex.extension = "EXTEND"
+    bsdf = nodes["Principled BSDF"]
+    m.node_tree.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    return m
+
+
 def emission(name, level):
     """A flat emitter whose 8-bit sRGB value under the Standard view transform is `level`."""
     m = bpy.data.materials.new(name)
@@ -116,7 +133,52 @@ def emission(name, level):
     return m
 
 
+def add_parts(o, index):
+    """One mesh of the object's parts (boxes and cylinders, their centres relative to the
+    object's position), smooth-shaded with sharp edges above 30 degrees."""
+    import bmesh
+    from mathutils import Matrix
+
+    bm = bmesh.new()
+    for part in o["parts"]:
+        r = part["rotation"]
+        rotation = Matrix([r[0:3], r[3:6], r[6:9]]).to_4x4()
+        place = Matrix.Translation(part["center"]) @ rotation
+        if part["kind"] == "box":
+            hx, hy, hz = part["half"]
+            scale = Matrix.Diagonal((hx, hy, hz, 1.0))
+            bmesh.ops.create_cube(bm, size=2.0, matrix=place @ scale)
+        elif part["kind"] == "cylinder":
+            rad, hh = part["radius"], part["half_height"]
+            scale = Matrix.Diagonal((rad, rad, hh, 1.0))
+            bmesh.ops.create_cone(
+                bm,
+                cap_ends=True,
+                cap_tris=False,
+                segments=64,
+                radius1=1.0,
+                radius2=1.0,
+                depth=2.0,
+                matrix=place @ scale,
+            )
+        else:
+            raise ValueError("unknown part kind %r" % part["kind"])
+    mesh = bpy.data.meshes.new("object_%d" % index)
+    bm.to_mesh(mesh)
+    bm.free()
+    for poly in mesh.polygons:
+        poly.use_smooth = True
+    mesh.use_auto_smooth = True
+    mesh.auto_smooth_angle = math.radians(30.0)
+    ob = bpy.data.objects.new("object_%d" % index, mesh)
+    bpy.context.scene.collection.objects.link(ob)
+    ob.location = o["position"]
+    return ob
+
+
 def add_object(o, index):
+    if "parts" in o:
+        return add_parts(o, index)
     shape, r = o["shape"], o["size"]
     x, y, z = o["position"]
     if shape == "sphere":
@@ -186,8 +248,19 @@ def render_scene(job, s):
 
     bpy.ops.mesh.primitive_plane_add(size=s["floor_size"], location=(0.0, 0.0, 0.0))
     floor = bpy.context.active_object
-    fa = s["floor_albedo"]
-    floor.data.materials.append(principled("floor", fa, 1.0, 0.2))
+    if s.get("floor_texture"):
+        floor.data.materials.append(textured_floor(s["floor_texture"]))
+    else:
+        fa = s["floor_albedo"]
+        floor.data.materials.append(principled("floor", fa, 1.0, 0.2))
+    background = [floor]
+    for k, w in enumerate(s.get("walls", [])):
+        bpy.ops.mesh.primitive_cube_add(size=2.0, location=w["center"])
+        wall = bpy.context.active_object
+        wall.name = "wall_%d" % k
+        wall.scale = w["half"]
+        wall.data.materials.append(principled("wall_%d" % k, w["albedo"], 1.0, 0.2))
+        background.append(wall)
 
     objects = []
     for i, o in enumerate(s["objects"]):
@@ -211,12 +284,14 @@ def render_scene(job, s):
             set_camera(scene, cam, view, s["width"])
             render_to(scene, view["rgb"])
         saved = [list(ob.data.materials) for ob in objects]
-        floor_saved = list(floor.data.materials)
+        background_saved = [list(ob.data.materials) for ob in background]
         for i, ob in enumerate(objects):
             ob.data.materials.clear()
             ob.data.materials.append(emission("id_%d" % (i + 1), s["objects"][i]["mask_level"]))
-        floor.data.materials.clear()
-        floor.data.materials.append(emission("id_0", 0))
+        black = emission("id_0", 0)
+        for ob in background:
+            ob.data.materials.clear()
+            ob.data.materials.append(black)
         bg.inputs["Strength"].default_value = 0.0
         for lt in lights:
             lt.hide_render = True
@@ -224,13 +299,10 @@ def render_scene(job, s):
         for view in views:
             set_camera(scene, cam, view, s["width"])
             render_to(scene, view["mask"])
-        for ob, mats in zip(objects, saved):
+        for ob, mats in zip(objects + background, saved + background_saved):
             ob.data.materials.clear()
             for m in mats:
                 ob.data.materials.append(m)
-        floor.data.materials.clear()
-        for m in floor_saved:
-            floor.data.materials.append(m)
         bg.inputs["Strength"].default_value = 1.0
         for lt in lights:
             lt.hide_render = False

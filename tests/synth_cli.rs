@@ -9,6 +9,7 @@ use assert_cmd::Command;
 use colf::camera::{Cameras, Frame};
 use colf::dataset::{Dataset, Layout};
 use colf::synth::geometry::Solid;
+use colf::synth::room::Room;
 use colf::synth::scene::{Building, Object};
 use glam::{DMat4, DVec3, DVec4};
 use std::collections::BTreeMap;
@@ -159,6 +160,10 @@ fn solids(scene: &serde_json::Value, objs: &[Object]) -> Vec<(Solid, u8)> {
         let buildings: Vec<Building> = serde_json::from_value(b.clone()).unwrap();
         out.extend(buildings.iter().map(|b| (b.solid(), 0)));
     }
+    if let Some(r) = scene.get("room") {
+        let room: Room = serde_json::from_value(r.clone()).unwrap();
+        out.extend(room.walls().iter().map(|w| (w.solid(), 0)));
+    }
     out
 }
 
@@ -245,6 +250,91 @@ fn object_centres_project_onto_their_own_mask_ids() {
     // Not vacuous: most centres are seen directly.
     assert!(checked >= 80, "{checked}");
     assert!(direct * 10 >= checked * 7, "{direct} of {checked}");
+}
+
+/// The room presets: 3-4 chairs on a room floor, exact masks (ids and visible pixels agree
+/// with scene.json, every chair is seen, and the mask pixel under each seat centre is what
+/// that pixel's line of sight meets in the chairs and walls rebuilt from scene.json), the
+/// same bytes with one thread or two, and uORF's layout read back.
+#[test]
+fn room_presets_hold_three_or_four_chairs_with_exact_masks() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (mut checked, mut direct) = (0, 0);
+    for preset in ["room-chair", "room-diverse"] {
+        let args = [
+            "--scenes", "3", "--preset", preset, "--size", "32", "--seed", "5",
+        ];
+        let run = |out: &Path, threads: &str| {
+            let o = synth()
+                .arg("--out")
+                .arg(out)
+                .arg("--quiet")
+                .args(args)
+                .env("RAYON_NUM_THREADS", threads)
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{o:?}");
+        };
+        let (out, one) = (
+            tmp.path().join(preset),
+            tmp.path().join(format!("{preset}-1")),
+        );
+        run(&out, "2");
+        run(&one, "1");
+        assert!(
+            files(&out) == files(&one),
+            "{preset}: the thread count changed bytes"
+        );
+        let mut designs = std::collections::BTreeSet::new();
+        for s in 0..3 {
+            let dir = out.join(format!("scene_{s:05}"));
+            let scene = scene_json(&dir);
+            assert_eq!(scene["preset"], preset);
+            assert_eq!(scene["ground"]["kind"], "floor");
+            assert!(scene["room"]["half_extent"].as_f64().unwrap() > 0.0);
+            let objs = objects(&scene);
+            assert!(
+                (3..=4).contains(&objs.len()),
+                "{preset}: {} chairs",
+                objs.len()
+            );
+            let mut seen = std::collections::BTreeSet::new();
+            for v in 0..4 {
+                let (_, _, m) = mask(&dir.join(format!("view_{v:03}.mask.png")));
+                for (k, o) in objs.iter().enumerate() {
+                    let n = m.iter().filter(|&&id| id as usize == k + 1).count() as u64;
+                    assert_eq!(o.visible_pixels[v], n);
+                }
+                assert!(m.iter().all(|&id| id as usize <= objs.len()));
+                seen.extend(m.iter().copied().filter(|&id| id > 0));
+            }
+            assert_eq!(seen.len(), objs.len(), "{preset}: every chair is seen");
+            for o in &objs {
+                assert_eq!(o.shape, "chair");
+                designs.insert(o.chair.unwrap().design_index);
+            }
+            let (c, d) = check_projection(&dir, &scene, &objs, "");
+            checked += c;
+            direct += d;
+        }
+        if preset == "room-chair" {
+            assert_eq!(designs, [None].into());
+        } else {
+            assert!(designs.len() >= 6, "{designs:?}");
+        }
+        let uorf = tmp.path().join(format!("{preset}-uorf"));
+        generate(
+            &uorf,
+            &[
+                "--scenes", "1", "--preset", preset, "--size", "32", "--layout", "uorf",
+            ],
+        );
+        let ds = Dataset::open(&uorf).unwrap();
+        assert_eq!((ds.layout, ds.len()), (Layout::Uorf, 1));
+        assert_eq!(ds.load(0).unwrap().views.len(), 4);
+    }
+    assert!(checked >= 30, "{checked}");
+    assert!(direct * 10 >= checked * 6, "{direct} of {checked}");
 }
 
 #[test]
@@ -548,8 +638,13 @@ fn bad_arguments_fail_with_the_right_exit_code() {
         let err = String::from_utf8(o.stderr).unwrap();
         assert!(err.starts_with("error:"), "{err}");
     }
-    let o = synth().args(["--out", "x"]).output().unwrap();
+    // Without --scenes a preset with a paper dataset size generates that many; city has none.
+    let o = synth()
+        .args(["--out", "x", "--preset", "city"])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(2), "missing --scenes");
+    assert!(String::from_utf8(o.stderr).unwrap().contains("--scenes N"));
     // Not a usage error: --out names a file.
     let file = tmp.path().join("file");
     std::fs::write(&file, b"x").unwrap();

@@ -12,10 +12,11 @@ use std::path::PathBuf;
     version,
     about = "Render multi-view synthetic scenes (CLEVR-567 and friends) with masks and cameras",
     long_about = "Render multi-view synthetic scenes with an analytic ray tracer: CLEVR shapes \
-(or cars) on a ground plane, one directional light with hard shadows, Lambertian shading, \
+(or cars, or chairs in a room) on a ground plane, one directional light with hard shadows, Lambertian shading, \
 anti-aliased 8-bit sRGB images, exact object masks and NeRF-convention cameras. With \
---engine blender the same scenes (objects and cameras) of clevr567 or packed11 are rendered by \
-Blender's Cycles instead (CPU path tracing, three area lights, soft shadows).\n\n\
+--engine blender the same scenes (objects and cameras) of clevr567, packed11, room-chair or \
+room-diverse are rendered by Blender's Cycles instead (CPU path tracing, three area lights, soft \
+shadows).\n\n\
 Each scene goes to DIR/scene_NNNNN/ (index zero-padded to 5 digits) and holds view_NNN.png, \
 view_NNN.mask.png (8-bit grey: 0 = background, k = object k of scene.json, 1-based), \
 transforms.json (camera-to-world, OpenGL camera axes, world +Z up) and scene.json (objects, \
@@ -29,19 +30,27 @@ Presets: clevr567 (5-7 CLEVR shapes on a grey floor, cameras at distance 12.4, e
 degrees, uniform azimuth; the reference distribution), packed11 (exactly 11 shapes in the same \
 area), clevr567-textured (clevr567 on a procedural checker/noise floor), city (a long street \
 with 2-4 rows of boxy cars in two lanes, buildings and sky; each view stands in front of a row \
-of cars, in a lane, 0.4-2 units high, looking down the street). Cameras are redrawn (up to 20 \
-times) until every object covers a mask pixel in some view.",
+of cars, in a lane, 0.4-2 units high, looking down the street), room-chair (after uORF's \
+Room-Chair: 3-4 chairs of one procedural design in a walled 16 x 16 room on one of 3 floor \
+textures; cameras at distance 8.5, elevation 35 degrees, uniform azimuth, looking at the room's \
+centre), room-diverse (after uORF's Room-Diverse: as room-chair with chairs of 1200 procedural \
+designs and 50 floor textures). Cameras are redrawn (up to 20 times) until every object covers \
+a mask pixel in some view.\n\n\
+Without --scenes the paper's dataset size is generated: 1000 train and 500 test scenes \
+(room-diverse: 5000 train).",
     after_help = "Examples:\n  colf-synth --out data/train --scenes 1000\n  \
 colf-synth --out data/test --scenes 100 --split test --size 128\n  \
+colf-synth --out data/room-diverse-test --preset room-diverse --split test --size 128\n  \
 colf-synth --out data/moved --scenes 10 --split test --move 2 1.5 -0.5"
 )]
 pub struct SynthArgs {
     /// Output folder (created); scenes go to DIR/scene_NNNNN/.
     #[arg(long, value_name = "DIR")]
     pub out: PathBuf,
-    /// Number of scenes.
+    /// Number of scenes (default: the paper's count for the preset and split — 1000 train and
+    /// 500 test scenes, room-diverse 5000 train; city has none and needs --scenes).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
-    pub scenes: u32,
+    pub scenes: Option<u32>,
     /// Base seed of the split's seed streams.
     #[arg(long, value_name = "S", default_value_t = 0)]
     pub seed: u64,
@@ -65,9 +74,10 @@ pub struct SynthArgs {
     #[arg(long = "move", num_args = 3, value_names = ["K", "DX", "DY"],
           allow_negative_numbers = true)]
     pub move_object: Option<Vec<f64>>,
-    /// Renderer: the built-in analytic ray tracer, or Blender's Cycles (CPU; clevr567 and
-    /// packed11 only; needs Blender 3.x, `apt-get install blender`; the executable is
-    /// `blender` on PATH or the COLF_BLENDER environment variable).
+    /// Renderer: the built-in analytic ray tracer, or Blender's Cycles (CPU; clevr567,
+    /// packed11, room-chair and room-diverse only; needs Blender 3.x, `apt-get install
+    /// blender`; the executable is `blender` on PATH or the COLF_BLENDER environment
+    /// variable).
     #[arg(long, value_enum, default_value_t = EngineName::Analytic)]
     pub engine: EngineName,
     /// File layout: colf's scene folders, or uORF's flat files as uORF's own loaders read them
@@ -122,18 +132,32 @@ impl SynthArgs {
         }
         if self.engine == EngineName::Blender && !crate::synth::blender::supports(self.preset) {
             return Err(format!(
-                "--engine blender renders --preset clevr567 or packed11, not {}",
+                "--engine blender renders --preset clevr567, packed11, room-chair or \
+                 room-diverse, not {}",
                 self.preset.name()
             ));
         }
+        self.scene_count()?;
         Ok(())
+    }
+
+    /// `--scenes`, or the paper's count for the preset and split.
+    pub fn scene_count(&self) -> Result<u64, String> {
+        match (self.scenes, self.preset.paper_scenes(self.split)) {
+            (Some(n), _) => Ok(n as u64),
+            (None, Some(n)) => Ok(n),
+            (None, None) => Err(format!(
+                "--preset {} has no paper dataset size: give --scenes N",
+                self.preset.name()
+            )),
+        }
     }
 
     /// The library's options (after [`SynthArgs::validate`]).
     pub fn options(&self) -> Result<SynthOptions, String> {
         Ok(SynthOptions {
             out: self.out.clone(),
-            scenes: self.scenes as u64,
+            scenes: self.scene_count()?,
             seed: self.seed,
             size: self.size,
             views: self.views as usize,
@@ -237,6 +261,7 @@ mod tests {
     #[test]
     fn parses_defaults_and_move() {
         let a = SynthArgs::try_parse_from(["colf-synth", "--out", "x", "--scenes", "3"]).unwrap();
+        assert_eq!(a.scene_count(), Ok(3));
         assert_eq!((a.seed, a.size, a.views), (0, 64, 4));
         assert_eq!((a.preset, a.split), (Preset::Clevr567, Split::Train));
         assert_eq!(a.move_spec().unwrap(), None);
@@ -290,5 +315,32 @@ mod tests {
         ])
         .unwrap();
         assert!(a.validate().unwrap_err().contains("whole number"));
+    }
+
+    #[test]
+    fn the_scene_count_defaults_to_the_papers() {
+        let count = |extra: &[&str]| {
+            let mut argv = vec!["colf-synth", "--out", "x"];
+            argv.extend(extra);
+            let a = SynthArgs::try_parse_from(&argv).unwrap();
+            a.validate().and_then(|_| a.scene_count())
+        };
+        assert_eq!(count(&[]), Ok(1000));
+        assert_eq!(count(&["--split", "test"]), Ok(500));
+        assert_eq!(count(&["--preset", "room-chair"]), Ok(1000));
+        assert_eq!(
+            count(&["--preset", "room-chair", "--split", "test"]),
+            Ok(500)
+        );
+        assert_eq!(count(&["--preset", "room-diverse"]), Ok(5000));
+        assert_eq!(
+            count(&["--preset", "room-diverse", "--split", "test"]),
+            Ok(500)
+        );
+        assert_eq!(count(&["--preset", "room-diverse", "--scenes", "7"]), Ok(7));
+        assert!(count(&["--preset", "city"])
+            .unwrap_err()
+            .contains("--scenes"));
+        assert_eq!(count(&["--preset", "city", "--scenes", "2"]), Ok(2));
     }
 }

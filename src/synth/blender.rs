@@ -1,5 +1,6 @@
 //! The Blender engine: scenes sampled here (the same layouts and cameras as the analytic
-//! engine) rendered by Blender's Cycles on the CPU, one Blender process per chunk of scenes,
+//! engine; for the room presets the same chair parts, walls and floor texture, baked into an
+//! image) rendered by Blender's Cycles on the CPU, one Blender process per chunk of scenes,
 //! each on one thread. The Python side is `scripts/blender_clevr.py`, embedded in the binary
 //! and written to a temporary folder at run time; it reads a JSON job and writes PNGs into
 //! that folder, which are decoded here (the id image into the mask) and written in the
@@ -8,8 +9,9 @@
 use super::hash::mix64;
 use super::presets::Preset;
 use super::render::RenderedView;
-use super::scene::spherical;
-use super::shading::albedo_of_srgb8;
+use super::room::{FloorTexture, PartShape};
+use super::scene::{spherical, Object};
+use super::shading::{albedo_of_srgb8, Ground};
 use super::{
     layout_frames, renders_manip, uorf, ManipRender, MoveSpec, SampledScene, SceneRender,
     SynthOptions,
@@ -21,6 +23,7 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
 use serde_json::{json, Value};
+use std::collections::BTreeMap;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -56,14 +59,32 @@ pub type SceneSink<'a> =
 
 /// Whether the engine can render `preset`.
 pub fn supports(preset: Preset) -> bool {
-    matches!(preset, Preset::Clevr567 | Preset::Packed11)
+    matches!(
+        preset,
+        Preset::Clevr567 | Preset::Packed11 | Preset::RoomChair | Preset::RoomDiverse
+    )
+}
+
+/// Side in texels of the floor image of a room (the floor texture baked for Blender).
+pub const FLOOR_TEXELS: u32 = 1024;
+
+/// Distance of the lights from the centre: inside the room's walls for the room presets.
+fn light_distance(sampled: &SampledScene) -> f64 {
+    if sampled.scene.room.is_some() {
+        6.0
+    } else {
+        10.0
+    }
 }
 
 /// The three area lights (key, fill, back) of a scene: the key light comes from the scene's
 /// light direction, the fill light from 100° to its side, the back light from behind; every
 /// position is jittered by up to ±1 unit per axis from a stream derived from the scene seed
-/// (so the layout's own stream is untouched).
+/// (so the layout's own stream is untouched). They stand 10 units from the centre (6 inside a
+/// room's walls, with their energy scaled by (6/10)² so the centre gets the same light).
 pub fn lights(sampled: &SampledScene) -> Value {
+    let distance = light_distance(sampled);
+    let gain = (distance / 10.0).powi(2);
     let mut rng = StdRng::seed_from_u64(mix64(sampled.scene_seed ^ 0x424c_454e_4445_5200));
     let az = sampled.scene.light.azimuth_degrees;
     let el = sampled.scene.light.elevation_degrees;
@@ -82,9 +103,9 @@ pub fn lights(sampled: &SampledScene) -> Value {
         })
     };
     json!({
-        "key": light(az, el, 10.0, 1000.0, 3.0),
-        "fill": light(az - 100.0, 30.0, 10.0, 300.0, 3.0),
-        "back": light(az + 180.0, 50.0, 10.0, 500.0, 3.0),
+        "key": light(az, el, distance, 1000.0 * gain, 3.0),
+        "fill": light(az - 100.0, 30.0, distance, 300.0 * gain, 3.0),
+        "back": light(az + 180.0, 50.0, distance, 500.0 * gain, 3.0),
     })
 }
 
@@ -118,6 +139,36 @@ fn decode_ids(bytes: &[u8], n: usize, name: &str) -> Result<Vec<u8>> {
         .collect()
 }
 
+/// The parts of a chair for Blender: each a box (`half`) or a cylinder (`radius`,
+/// `half_height`, axis along its third axis) with its `center` relative to the object's
+/// position and its `rotation` (row-major 3×3, columns the part's axes), in world axes.
+fn chair_parts_json(o: &Object) -> Option<Value> {
+    let design = o.chair?;
+    let position = o.center();
+    let parts: Vec<Value> = design
+        .parts(position, o.rotation_z_degrees)
+        .iter()
+        .map(|p| {
+            let rotation = p.rotation.transpose().to_cols_array();
+            let center = (p.center - position).to_array();
+            match p.shape {
+                PartShape::Box { half } => json!({
+                    "kind": "box", "center": center, "rotation": rotation,
+                    "half": half.to_array(),
+                }),
+                PartShape::Cylinder {
+                    radius,
+                    half_height,
+                } => json!({
+                    "kind": "cylinder", "center": center, "rotation": rotation,
+                    "radius": radius, "half_height": half_height,
+                }),
+            }
+        })
+        .collect();
+    Some(Value::Array(parts))
+}
+
 /// The job entries of a scene's objects.
 fn objects_job(sampled: &SampledScene) -> Vec<Value> {
     let n = sampled.scene.objects.len();
@@ -127,21 +178,25 @@ fn objects_job(sampled: &SampledScene) -> Vec<Value> {
         .iter()
         .enumerate()
         .map(|(k, o)| {
-            json!({
+            let mut object = json!({
                 "shape": o.shape,
                 "size": o.size,
                 "position": o.position,
                 "rotation_z_degrees": o.rotation_z_degrees,
                 "albedo": albedo_of_srgb8(o.rgb).to_array(),
                 "mask_level": id_level(k + 1, n),
-            })
+            });
+            if let Some(parts) = chair_parts_json(o) {
+                object["parts"] = parts;
+            }
+            object
         })
         .collect()
 }
 
-/// The job entry of one scene; its PNGs go to `tmp`. `providing` is the scene whose
-/// background (its lights: the floor is the same) uORF's scene manipulation puts behind this
-/// scene's objects.
+/// The job entry of one scene; its PNGs go to `tmp` (and a room's floor image is there, see
+/// [`bake_floors`]). `providing` is the scene whose background (its lights: the floor is the
+/// same) uORF's scene manipulation puts behind this scene's objects.
 fn scene_job(
     args: &SynthOptions,
     index: u64,
@@ -149,7 +204,7 @@ fn scene_job(
     frames: &[Frame],
     tmp: &Path,
     providing: Option<&SampledScene>,
-) -> Value {
+) -> Result<Value> {
     let objects = objects_job(sampled);
     let views = |tag: &str| -> Vec<Value> {
         frames
@@ -191,7 +246,39 @@ fn scene_job(
             { "objects": objects_job(other), "lights": lights(other), "views": views("p") },
         ]);
     }
-    s
+    if let Some(room) = &sampled.scene.room {
+        let Ground::Floor(texture) = &sampled.scene.ground else {
+            bail!("scene {index}: a room without a floor texture");
+        };
+        s["floor_texture"] = json!(tmp.join(floor_image_name(texture)));
+        s["floor_size"] = json!(2.0 * room.half_extent);
+        s["walls"] = serde_json::to_value(room.walls())?;
+    }
+    Ok(s)
+}
+
+/// The file name of a floor texture's baked image: one per texture of a family, shared by
+/// the scenes on that floor.
+fn floor_image_name(texture: &FloorTexture) -> String {
+    format!("floor-{}-{}.png", texture.family, texture.index)
+}
+
+/// Bakes the floor image of every distinct floor texture of `sampled` into `tmp`.
+fn bake_floors(sampled: &[(SampledScene, Vec<Frame>)], tmp: &Path) -> Result<()> {
+    let mut floors: BTreeMap<String, (&FloorTexture, f64)> = BTreeMap::new();
+    for (s, _) in sampled {
+        if let (Some(room), Ground::Floor(texture)) = (&s.scene.room, &s.scene.ground) {
+            floors
+                .entry(floor_image_name(texture))
+                .or_insert((texture, room.half_extent));
+        }
+    }
+    floors
+        .into_par_iter()
+        .try_for_each(|(name, (texture, half_extent))| {
+            let pixels = texture.bake(half_extent, FLOOR_TEXELS);
+            super::writer::write_png(&tmp.join(name), &pixels, FLOOR_TEXELS, FLOOR_TEXELS, 3)
+        })
 }
 
 /// Reads back the views Blender wrote for one scene.
@@ -226,7 +313,8 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
     }
     if !supports(args.preset) {
         bail!(
-            "the Blender engine renders the CLEVR presets clevr567 and packed11, not {}",
+            "the Blender engine renders the presets clevr567, packed11, room-chair and \
+             room-diverse, not {}",
             args.preset.name()
         );
     }
@@ -248,19 +336,16 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
         })
         .collect::<Result<_>>()?;
     let jobs = blender.jobs.clamp(1, n.max(1) as usize);
-    let mut scene_jobs: Vec<Value> = Vec::with_capacity(n as usize);
-    for (index, (s, frames)) in sampled.iter().enumerate() {
-        let providing = renders_manip(args)
-            .then(|| &sampled[uorf::providing_scene(index as u64, n) as usize].0);
-        scene_jobs.push(scene_job(
-            args,
-            index as u64,
-            s,
-            frames,
-            tmp.path(),
-            providing,
-        ));
-    }
+    bake_floors(&sampled, tmp.path())?;
+    let scene_jobs: Vec<Value> = sampled
+        .par_iter()
+        .enumerate()
+        .map(|(index, (s, frames))| {
+            let providing = renders_manip(args)
+                .then(|| &sampled[uorf::providing_scene(index as u64, n) as usize].0);
+            scene_job(args, index as u64, s, frames, tmp.path(), providing)
+        })
+        .collect::<Result<_>>()?;
     std::thread::scope(|scope| -> Result<()> {
         let mut handles = Vec::new();
         for p in 0..jobs {

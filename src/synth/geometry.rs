@@ -1,7 +1,8 @@
 //! Ray–primitive intersection for the analytic tracer: spheres, boxes rotated about +Z, upright
-//! cylinders, and the ground plane z = 0. Everything is f64 and closed-form, so masks are exact.
+//! cylinders, boxes and cylinders in any orientation (the parts of chairs), and the ground plane
+//! z = 0. Everything is f64 and closed-form, so masks are exact.
 
-use glam::DVec3;
+use glam::{DMat3, DVec3};
 
 /// Hits closer than this along a ray are ignored, so a shadow ray leaving a surface does not
 /// find the surface it left.
@@ -33,6 +34,20 @@ pub enum Solid {
         radius: f64,
         half_height: f64,
     },
+    /// A box with half extents `half` along the columns of `rotation` (a rotation matrix: its
+    /// columns are the box's axes in world space).
+    OrientedBox {
+        center: DVec3,
+        half: DVec3,
+        rotation: DMat3,
+    },
+    /// A cylinder whose axis is the third column of `rotation` (a rotation matrix).
+    OrientedCylinder {
+        center: DVec3,
+        radius: f64,
+        half_height: f64,
+        rotation: DMat3,
+    },
 }
 
 impl Solid {
@@ -41,7 +56,9 @@ impl Solid {
         match *self {
             Solid::Sphere { center, .. }
             | Solid::Cuboid { center, .. }
-            | Solid::Cylinder { center, .. } => center,
+            | Solid::Cylinder { center, .. }
+            | Solid::OrientedBox { center, .. }
+            | Solid::OrientedCylinder { center, .. } => center,
         }
     }
 
@@ -51,7 +68,9 @@ impl Solid {
         match &mut s {
             Solid::Sphere { center, .. }
             | Solid::Cuboid { center, .. }
-            | Solid::Cylinder { center, .. } => *center += delta,
+            | Solid::Cylinder { center, .. }
+            | Solid::OrientedBox { center, .. }
+            | Solid::OrientedCylinder { center, .. } => *center += delta,
         }
         s
     }
@@ -60,8 +79,13 @@ impl Solid {
     pub fn bounding_radius(&self) -> f64 {
         match *self {
             Solid::Sphere { radius, .. } => radius,
-            Solid::Cuboid { half, .. } => half.length(),
+            Solid::Cuboid { half, .. } | Solid::OrientedBox { half, .. } => half.length(),
             Solid::Cylinder {
+                radius,
+                half_height,
+                ..
+            }
+            | Solid::OrientedCylinder {
                 radius,
                 half_height,
                 ..
@@ -84,6 +108,25 @@ impl Solid {
             } => {
                 let d = p - center;
                 d.x * d.x + d.y * d.y < radius * radius && d.z.abs() < half_height
+            }
+            Solid::OrientedBox {
+                center,
+                half,
+                rotation,
+            } => {
+                let d = p - center;
+                (0..3).all(|axis| d.dot(rotation.col(axis)).abs() < half[axis])
+            }
+            Solid::OrientedCylinder {
+                center,
+                radius,
+                half_height,
+                rotation,
+            } => {
+                let d = p - center;
+                let along = d.dot(rotation.z_axis);
+                (d - along * rotation.z_axis).length_squared() < radius * radius
+                    && along.abs() < half_height
             }
         }
     }
@@ -113,92 +156,132 @@ impl Solid {
             Solid::Cuboid { center, half, yaw } => {
                 let o = rotate_z(origin - center, -yaw);
                 let d = rotate_z(dir, -yaw);
-                let (mut t_near, mut t_far) = (f64::NEG_INFINITY, f64::INFINITY);
-                let (mut near_axis, mut far_axis) = (0usize, 0usize);
-                for axis in 0..3 {
-                    let (oa, da, ha) = (o[axis], d[axis], half[axis]);
-                    if da.abs() < 1e-300 {
-                        if oa.abs() > ha {
-                            return None;
-                        }
-                        continue;
-                    }
-                    let (mut t0, mut t1) = ((-ha - oa) / da, (ha - oa) / da);
-                    if t0 > t1 {
-                        std::mem::swap(&mut t0, &mut t1);
-                    }
-                    if t0 > t_near {
-                        t_near = t0;
-                        near_axis = axis;
-                    }
-                    if t1 < t_far {
-                        t_far = t1;
-                        far_axis = axis;
-                    }
-                }
-                if t_near > t_far {
-                    return None;
-                }
-                let (t, axis) = if t_near > EPSILON {
-                    (t_near, near_axis)
-                } else {
-                    (t_far, far_axis)
-                };
-                if t <= EPSILON || t >= t_max {
-                    return None;
-                }
-                let mut n = DVec3::ZERO;
-                n[axis] = (o[axis] + t * d[axis]).signum();
-                Some(Hit {
-                    t,
-                    normal: rotate_z(n, yaw),
+                box_hit(o, d, half, t_max).map(|h| Hit {
+                    t: h.t,
+                    normal: rotate_z(h.normal, yaw),
                 })
             }
             Solid::Cylinder {
                 center,
                 radius,
                 half_height,
+            } => cylinder_hit(origin - center, dir, radius, half_height, t_max),
+            Solid::OrientedBox {
+                center,
+                half,
+                rotation,
             } => {
-                let o = origin - center;
-                let mut best: Option<Hit> = None;
-                let mut consider = |t: f64, normal: DVec3| {
-                    if t > EPSILON && t < t_max && best.is_none_or(|b| t < b.t) {
-                        best = Some(Hit { t, normal });
-                    }
-                };
-                // Side: (ox + t dx)² + (oy + t dy)² = r².
-                let a = dir.x * dir.x + dir.y * dir.y;
-                if a > 1e-300 {
-                    let b = o.x * dir.x + o.y * dir.y;
-                    let c = o.x * o.x + o.y * o.y - radius * radius;
-                    let disc = b * b - a * c;
-                    if disc >= 0.0 {
-                        let root = disc.sqrt();
-                        for t in [(-b - root) / a, (-b + root) / a] {
-                            let p = o + t * dir;
-                            if p.z.abs() <= half_height {
-                                consider(t, DVec3::new(p.x, p.y, 0.0) / radius);
-                            }
-                        }
-                    }
-                }
-                // Caps.
-                if dir.z.abs() > 1e-300 {
-                    for (z, nz) in [(half_height, 1.0), (-half_height, -1.0)] {
-                        let t = (z - o.z) / dir.z;
-                        let p = o + t * dir;
-                        if p.x * p.x + p.y * p.y <= radius * radius {
-                            consider(t, DVec3::new(0.0, 0.0, nz));
-                        }
-                    }
-                }
-                best.map(|h| Hit {
+                // The frame is orthonormal: distances along the ray are the same in it.
+                let to_local = rotation.transpose();
+                box_hit(to_local * (origin - center), to_local * dir, half, t_max).map(|h| Hit {
                     t: h.t,
-                    normal: h.normal.normalize(),
+                    normal: (rotation * h.normal).normalize(),
+                })
+            }
+            Solid::OrientedCylinder {
+                center,
+                radius,
+                half_height,
+                rotation,
+            } => {
+                let to_local = rotation.transpose();
+                cylinder_hit(
+                    to_local * (origin - center),
+                    to_local * dir,
+                    radius,
+                    half_height,
+                    t_max,
+                )
+                .map(|h| Hit {
+                    t: h.t,
+                    normal: (rotation * h.normal).normalize(),
                 })
             }
         }
     }
+}
+
+/// Nearest hit with EPSILON < t < `t_max` of the ray `o + t·d` (box frame) with the box of half
+/// extents `half` centred at the origin; the normal in the box's frame.
+fn box_hit(o: DVec3, d: DVec3, half: DVec3, t_max: f64) -> Option<Hit> {
+    let (mut t_near, mut t_far) = (f64::NEG_INFINITY, f64::INFINITY);
+    let (mut near_axis, mut far_axis) = (0usize, 0usize);
+    for axis in 0..3 {
+        let (oa, da, ha) = (o[axis], d[axis], half[axis]);
+        if da.abs() < 1e-300 {
+            if oa.abs() > ha {
+                return None;
+            }
+            continue;
+        }
+        let (mut t0, mut t1) = ((-ha - oa) / da, (ha - oa) / da);
+        if t0 > t1 {
+            std::mem::swap(&mut t0, &mut t1);
+        }
+        if t0 > t_near {
+            t_near = t0;
+            near_axis = axis;
+        }
+        if t1 < t_far {
+            t_far = t1;
+            far_axis = axis;
+        }
+    }
+    if t_near > t_far {
+        return None;
+    }
+    let (t, axis) = if t_near > EPSILON {
+        (t_near, near_axis)
+    } else {
+        (t_far, far_axis)
+    };
+    if t <= EPSILON || t >= t_max {
+        return None;
+    }
+    let mut n = DVec3::ZERO;
+    n[axis] = (o[axis] + t * d[axis]).signum();
+    Some(Hit { t, normal: n })
+}
+
+/// Nearest hit with EPSILON < t < `t_max` of the ray `o + t·d` (cylinder frame) with the
+/// cylinder of axis +Z centred at the origin; the normal in the cylinder's frame.
+fn cylinder_hit(o: DVec3, dir: DVec3, radius: f64, half_height: f64, t_max: f64) -> Option<Hit> {
+    let mut best: Option<Hit> = None;
+    let mut consider = |t: f64, normal: DVec3| {
+        if t > EPSILON && t < t_max && best.is_none_or(|b| t < b.t) {
+            best = Some(Hit { t, normal });
+        }
+    };
+    // Side: (ox + t dx)² + (oy + t dy)² = r².
+    let a = dir.x * dir.x + dir.y * dir.y;
+    if a > 1e-300 {
+        let b = o.x * dir.x + o.y * dir.y;
+        let c = o.x * o.x + o.y * o.y - radius * radius;
+        let disc = b * b - a * c;
+        if disc >= 0.0 {
+            let root = disc.sqrt();
+            for t in [(-b - root) / a, (-b + root) / a] {
+                let p = o + t * dir;
+                if p.z.abs() <= half_height {
+                    consider(t, DVec3::new(p.x, p.y, 0.0) / radius);
+                }
+            }
+        }
+    }
+    // Caps.
+    if dir.z.abs() > 1e-300 {
+        for (z, nz) in [(half_height, 1.0), (-half_height, -1.0)] {
+            let t = (z - o.z) / dir.z;
+            let p = o + t * dir;
+            if p.x * p.x + p.y * p.y <= radius * radius {
+                consider(t, DVec3::new(0.0, 0.0, nz));
+            }
+        }
+    }
+    best.map(|h| Hit {
+        t: h.t,
+        normal: h.normal.normalize(),
+    })
 }
 
 /// `v` rotated by `angle` radians about +Z.
@@ -235,6 +318,17 @@ mod tests {
                 center: DVec3::new(0.3, -0.2, 0.35),
                 radius: 0.35,
                 half_height: 0.35,
+            },
+            Solid::OrientedBox {
+                center: DVec3::new(0.3, -0.2, 0.5),
+                half: DVec3::new(0.5, 0.3, 0.4),
+                rotation: DMat3::from_euler(glam::EulerRot::ZYX, 0.7, -0.4, 0.3),
+            },
+            Solid::OrientedCylinder {
+                center: DVec3::new(0.3, -0.2, 0.5),
+                radius: 0.3,
+                half_height: 0.6,
+                rotation: DMat3::from_euler(glam::EulerRot::ZYX, -1.1, 0.5, 0.2),
             },
         ]
     }

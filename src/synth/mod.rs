@@ -2,7 +2,9 @@
 //! tracer (no external renderer) or, for the CLEVR presets, by Blender's Cycles.
 //!
 //! - [`scene`]: what a scene is, as written to `scene.json`.
-//! - [`presets`]: the scene distributions (clevr567, packed11, clevr567-textured, city).
+//! - [`presets`]: the scene distributions (clevr567, packed11, clevr567-textured, city,
+//!   room-chair, room-diverse).
+//! - [`room`]: the room presets' procedural chairs, floor textures and walls.
 //! - [`geometry`]: ray–solid intersection.
 //! - [`shading`]: sRGB, the Lambertian model, ground materials, sky.
 //! - [`look`]: the randomised look (floor, light, exposure, noise).
@@ -26,6 +28,7 @@ pub mod hash;
 pub mod look;
 pub mod presets;
 pub mod render;
+pub mod room;
 pub mod scene;
 pub mod shading;
 pub mod uorf;
@@ -399,6 +402,9 @@ fn write_outputs(
     if !scene.buildings.is_empty() {
         doc["buildings"] = serde_json::to_value(&scene.buildings)?;
         doc["rows"] = serde_json::to_value(&scene.rows)?;
+    }
+    if let Some(room) = &scene.room {
+        doc["room"] = serde_json::to_value(room)?;
     }
     if !moved_json.is_null() {
         doc["moved"] = moved_json;

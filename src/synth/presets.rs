@@ -1,8 +1,11 @@
 //! The scene distributions: `clevr567` (the reference distribution, documented in docs/synth.md), `packed11` (11 objects, the
 //! paper's generalisation test), `clevr567-textured` (clevr567 on a procedural checker/noise
-//! floor) and `city` (a long street with two lanes of boxy cars, buildings and sky).
+//! floor), `city` (a long street with two lanes of boxy cars, buildings and sky), and the
+//! room presets `room-chair` and `room-diverse` (3-4 procedural chairs in a walled room on a
+//! textured floor, after uORF's Room-Chair and Room-Diverse).
 
 use super::hash::mix64;
+use super::room::{self, ChairDesign, Room};
 use super::scene::{
     spherical, Building, CameraPlacement, CarShape, Light, Object, Scene, CLEVR_COLORS, CLEVR_SIZES,
 };
@@ -31,6 +34,14 @@ pub enum Preset {
     #[value(name = "clevr567-textured")]
     #[serde(rename = "clevr567-textured")]
     Clevr567Textured,
+    /// Room-Chair: 3-4 chairs of one design in a room, one of 3 floor textures.
+    #[value(name = "room-chair")]
+    #[serde(rename = "room-chair")]
+    RoomChair,
+    /// Room-Diverse: 3-4 chairs of 1,200 procedural designs, one of 50 floor textures.
+    #[value(name = "room-diverse")]
+    #[serde(rename = "room-diverse")]
+    RoomDiverse,
 }
 
 impl Preset {
@@ -40,6 +51,20 @@ impl Preset {
             Preset::Packed11 => "packed11",
             Preset::City => "city",
             Preset::Clevr567Textured => "clevr567-textured",
+            Preset::RoomChair => "room-chair",
+            Preset::RoomDiverse => "room-diverse",
+        }
+    }
+
+    /// The number of scenes of `split` in the paper's dataset (uORF's CLEVR-567, Room-Chair
+    /// and Room-Diverse; packed-CLEVR-11 and clevr567-textured as CLEVR-567); none for `city`.
+    pub fn paper_scenes(self, split: super::Split) -> Option<u64> {
+        use super::Split::{Test, Train};
+        match (self, split) {
+            (Preset::City, _) => None,
+            (Preset::RoomDiverse, Train) => Some(5000),
+            (_, Train) => Some(1000),
+            (_, Test) => Some(500),
         }
     }
 }
@@ -51,6 +76,13 @@ pub const CLEVR_CAMERA_ELEVATION: f64 = 40.0;
 pub const FOCAL_PER_WIDTH: f64 = 1.09375;
 /// Object centres are uniform in [−CLEVR_EXTENT, CLEVR_EXTENT]².
 pub const CLEVR_EXTENT: f64 = 3.0;
+/// Room presets' cameras: distance from the room's centre and elevation, degrees.
+pub const ROOM_CAMERA_DISTANCE: f64 = 8.5;
+pub const ROOM_CAMERA_ELEVATION: f64 = 35.0;
+/// Chair centres are uniform in [−ROOM_CHAIR_EXTENT, ROOM_CHAIR_EXTENT]².
+pub const ROOM_CHAIR_EXTENT: f64 = 2.2;
+/// Least gap between the footprint circles of two chairs.
+const CHAIR_GAP: f64 = 0.05;
 
 const SHAPES: [&str; 3] = ["sphere", "cube", "cylinder"];
 
@@ -81,9 +113,78 @@ pub fn sample_scene(preset: Preset, rng: &mut StdRng) -> Scene {
                 light,
                 cameras: Vec::new(),
                 rows: Vec::new(),
+                room: None,
             }
         }
         Preset::City => sample_city(rng, light),
+        Preset::RoomChair | Preset::RoomDiverse => sample_room(preset, rng, light),
+    }
+}
+
+/// A room scene: the floor texture and walls, then 3-4 chairs (design, colour, yaw; then a
+/// position whose footprint circle keeps CHAIR_GAP from the others, redrawn up to 500 times;
+/// the whole layout is redrawn in the rare case a chair does not fit).
+fn sample_room(preset: Preset, rng: &mut StdRng, light: Light) -> Scene {
+    let (floor, wall) = if preset == Preset::RoomChair {
+        let k = rng.random_range(0..room::ROOM_CHAIR_FLOORS);
+        let wall = room::ROOM_CHAIR_WALL.map(|c| super::shading::srgb_to_linear(c as f64 / 255.0));
+        (room::room_chair_floor(k), wall)
+    } else {
+        room::diverse_floor(rng.random_range(0..room::DIVERSE_FLOORS))
+    };
+    let count = rng.random_range(3..=4);
+    let objects = 'layout: loop {
+        let mut objects: Vec<Object> = Vec::with_capacity(count);
+        for _ in 0..count {
+            let design = if preset == Preset::RoomChair {
+                ChairDesign::room_chair()
+            } else {
+                ChairDesign::diverse(rng.random_range(0..room::DIVERSE_DESIGNS))
+            };
+            let (color_name, rgb) = CLEVR_COLORS[rng.random_range(0..CLEVR_COLORS.len())];
+            let yaw = rng.random_range(0.0..360.0);
+            let (radius, height) = design.extent();
+            let mut placed = false;
+            for _ in 0..500 {
+                let x = rng.random_range(-ROOM_CHAIR_EXTENT..=ROOM_CHAIR_EXTENT);
+                let y = rng.random_range(-ROOM_CHAIR_EXTENT..=ROOM_CHAIR_EXTENT);
+                let fits = objects.iter().all(|o| {
+                    let d = (o.position[0] - x).hypot(o.position[1] - y);
+                    d >= o.footprint_radius + radius + CHAIR_GAP
+                });
+                if fits {
+                    objects.push(Object {
+                        shape: "chair".into(),
+                        color: color_name.into(),
+                        rgb,
+                        size: height,
+                        size_name: "chair".into(),
+                        position: [x, y, design.seat_center_height()],
+                        rotation_z_degrees: yaw,
+                        footprint_radius: radius,
+                        car: None,
+                        chair: Some(design),
+                        visible_pixels: Vec::new(),
+                    });
+                    placed = true;
+                    break;
+                }
+            }
+            if !placed {
+                continue 'layout;
+            }
+        }
+        break objects;
+    };
+    Scene {
+        objects,
+        buildings: Vec::new(),
+        ground: Ground::Floor(floor),
+        sky: false,
+        light,
+        cameras: Vec::new(),
+        rows: Vec::new(),
+        room: Some(Room::new(wall)),
     }
 }
 
@@ -225,6 +326,7 @@ fn sample_city(rng: &mut StdRng, light: Light) -> Scene {
         light,
         cameras: Vec::new(),
         rows,
+        room: None,
     }
 }
 
@@ -254,6 +356,7 @@ fn sample_car(rng: &mut StdRng, x: f64, y: f64, heading: f64) -> Object {
         rotation_z_degrees: heading + rng.random_range(-6.0..=6.0),
         footprint_radius: half_length.hypot(half_width),
         car: Some(shape),
+        chair: None,
         visible_pixels: Vec::new(),
     }
 }
@@ -307,15 +410,23 @@ pub fn sample_cameras(
                     }
                 }
                 _ => {
+                    // uORF's rooms and CLEVR: a fixed distance and elevation, a uniform
+                    // azimuth, looking at the centre.
+                    let (distance, elevation) = match preset {
+                        Preset::RoomChair | Preset::RoomDiverse => {
+                            (ROOM_CAMERA_DISTANCE, ROOM_CAMERA_ELEVATION)
+                        }
+                        _ => (CLEVR_CAMERA_DISTANCE, CLEVR_CAMERA_ELEVATION),
+                    };
                     let azimuth = rng.random_range(0.0..360.0);
-                    let eye = CLEVR_CAMERA_DISTANCE * spherical(azimuth, CLEVR_CAMERA_ELEVATION);
+                    let eye = distance * spherical(azimuth, elevation);
                     CameraPlacement {
                         file_path,
                         position: eye.to_array(),
                         look_at: [0.0; 3],
                         azimuth_degrees: Some(azimuth),
-                        elevation_degrees: Some(CLEVR_CAMERA_ELEVATION),
-                        distance: Some(CLEVR_CAMERA_DISTANCE),
+                        elevation_degrees: Some(elevation),
+                        distance: Some(distance),
                     }
                 }
             }
@@ -369,6 +480,72 @@ mod tests {
             let p = DVec3::from_array(c.position);
             assert!((p.length() - 12.4).abs() < 1e-9);
             assert!((p.z / p.length() - 40f64.to_radians().sin()).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn room_layouts_hold_three_or_four_chairs_apart_on_a_room_floor() {
+        for preset in [Preset::RoomChair, Preset::RoomDiverse] {
+            let (mut counts, mut floors, mut designs) = (
+                std::collections::BTreeSet::new(),
+                std::collections::BTreeSet::new(),
+                std::collections::BTreeSet::new(),
+            );
+            for seed in 0..150 {
+                let mut rng = StdRng::seed_from_u64(seed);
+                let scene = sample_scene(preset, &mut rng);
+                counts.insert(scene.objects.len());
+                let Ground::Floor(floor) = &scene.ground else {
+                    panic!("{preset:?}: not a room floor");
+                };
+                floors.insert(floor.index);
+                assert!(scene.room.is_some());
+                for (i, a) in scene.objects.iter().enumerate() {
+                    assert_eq!(a.shape, "chair");
+                    let design = a.chair.expect("a chair design");
+                    designs.insert(design.design_index);
+                    assert!(a.position[0].abs() <= ROOM_CHAIR_EXTENT);
+                    assert!(a.position[1].abs() <= ROOM_CHAIR_EXTENT);
+                    assert_eq!(a.position[2], design.seat_center_height());
+                    for b in &scene.objects[i + 1..] {
+                        let d =
+                            (a.position[0] - b.position[0]).hypot(a.position[1] - b.position[1]);
+                        assert!(
+                            d >= a.footprint_radius + b.footprint_radius,
+                            "chairs overlap"
+                        );
+                    }
+                }
+            }
+            assert_eq!(counts, [3, 4].into(), "{preset:?}");
+            if preset == Preset::RoomChair {
+                assert_eq!(floors.len(), 3);
+                assert_eq!(designs, [None].into());
+            } else {
+                assert!(floors.len() > 40, "{} floors", floors.len());
+                assert!(designs.len() > 400, "{} designs", designs.len());
+            }
+        }
+    }
+
+    /// Room cameras stand inside the room, below the walls' top, at the fixed distance and
+    /// elevation: every ray of every view meets the floor, a wall or a chair.
+    #[test]
+    fn room_cameras_see_only_the_room() {
+        let mut rng = StdRng::seed_from_u64(5);
+        let scene = sample_scene(Preset::RoomDiverse, &mut rng);
+        let tracer = crate::synth::render::Tracer::new(&scene, None).unwrap();
+        let cams = sample_cameras(Preset::RoomDiverse, &scene, &mut rng, 24);
+        for c in &cams {
+            let p = DVec3::from_array(c.position);
+            assert!((p.length() - ROOM_CAMERA_DISTANCE).abs() < 1e-9);
+            assert!((p.z / p.length() - ROOM_CAMERA_ELEVATION.to_radians().sin()).abs() < 1e-12);
+            assert!(p.x.abs().max(p.y.abs()) < room::ROOM_HALF_EXTENT);
+            assert!(p.z < room::WALL_HEIGHT);
+            let frame = crate::synth::frame_of(c, 24).unwrap();
+            for ray in frame.rays() {
+                assert!(tracer.first_hit(ray.origin, ray.direction).is_some());
+            }
         }
     }
 

@@ -74,7 +74,8 @@ impl Tracer {
                 });
             }
         }
-        for b in &scene.buildings {
+        let walls = scene.room.as_ref().map(|r| r.walls()).unwrap_or_default();
+        for b in scene.buildings.iter().chain(&walls) {
             parts.push(Part {
                 solid: b.solid(),
                 albedo: DVec3::from_array(b.albedo),
@@ -257,6 +258,7 @@ mod tests {
             light: Light::new(0.0, 90.0),
             cameras: Vec::new(),
             rows: Vec::new(),
+            room: None,
         }
     }
 

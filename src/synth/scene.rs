@@ -2,6 +2,7 @@
 //! `scene.json`, and how objects turn into solids for the tracer.
 
 use super::geometry::Solid;
+use super::room::{ChairDesign, Room};
 use super::shading::{albedo_of_srgb8, Ground};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -41,19 +42,20 @@ pub struct CarShape {
 /// One foreground object, exactly as in `scene.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Object {
-    /// `sphere`, `cube`, `cylinder` or `car`.
+    /// `sphere`, `cube`, `cylinder`, `car` or `chair`.
     pub shape: String,
     /// CLEVR colour name.
     pub color: String,
     /// sRGB colour.
     pub rgb: [u8; 3],
     /// CLEVR size r (sphere radius; cylinder radius and half-height; cube half-edge r/√2);
-    /// for a car, the half-length of its body.
+    /// for a car, the half-length of its body; for a chair, its height (floor to the top of
+    /// its back).
     pub size: f64,
-    /// `small`/`large` for CLEVR shapes, `car` for cars.
+    /// `small`/`large` for CLEVR shapes, `car` for cars, `chair` for chairs.
     pub size_name: String,
-    /// Centre of the object (for CLEVR shapes the solid's centre, for a car the body's centre):
-    /// always a point inside the object.
+    /// Centre of the object (for CLEVR shapes the solid's centre, for a car the body's centre,
+    /// for a chair the seat's centre): always a point inside the object.
     pub position: [f64; 3],
     /// Rotation about +Z, degrees.
     pub rotation_z_degrees: f64,
@@ -61,6 +63,9 @@ pub struct Object {
     pub footprint_radius: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub car: Option<CarShape>,
+    /// For a chair (presets room-chair, room-diverse), its design.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chair: Option<ChairDesign>,
     /// Mask pixels of this object in each view (filled in after rendering).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub visible_pixels: Vec<u64>,
@@ -86,6 +91,7 @@ impl Object {
             // Cube: half-diagonal of a face of half-edge r/√2 is r; the others have radius r.
             footprint_radius: r,
             car: None,
+            chair: None,
             visible_pixels: Vec::new(),
         }
     }
@@ -164,6 +170,16 @@ impl Object {
                 }
                 parts
             }
+            "chair" => {
+                let design = self.chair.ok_or_else(|| {
+                    anyhow::anyhow!("object of shape `chair` lacks its `chair` design")
+                })?;
+                design
+                    .parts(center, self.rotation_z_degrees)
+                    .iter()
+                    .map(|part| (part.solid(), albedo))
+                    .collect()
+            }
             other => anyhow::bail!("unknown object shape `{other}`"),
         })
     }
@@ -233,6 +249,8 @@ pub struct Scene {
     pub cameras: Vec<CameraPlacement>,
     /// Preset `city`: x of each row of cars (cameras stand in front of them).
     pub rows: Vec<f64>,
+    /// The room presets: the walls around the floor.
+    pub room: Option<Room>,
 }
 
 /// Unit vector at azimuth (from +X toward +Y) and elevation (above the XY plane), degrees.
@@ -269,6 +287,7 @@ mod tests {
                     Solid::Cuboid { half, .. } => {
                         assert!((half.x - r / 2f64.sqrt()).abs() < 1e-15)
                     }
+                    other => panic!("{shape} made of {other:?}"),
                 }
                 assert!(solid.contains(c));
             }

@@ -1,5 +1,6 @@
 //! Colour and shading: sRGB ↔ linear, the Lambertian model of the clevr567 contract, the
-//! procedural ground materials (uniform, textured checker/noise floor, city street) and the sky.
+//! procedural ground materials (uniform, textured checker/noise floor, city street, room
+//! floors) and the sky.
 
 use glam::DVec3;
 use serde::Serialize;
@@ -74,6 +75,8 @@ pub enum Ground {
         road_half_width: f64,
         pavement_edge: f64,
     },
+    /// A room's procedural floor (presets room-chair, room-diverse).
+    Floor(super::room::FloorTexture),
 }
 
 impl Ground {
@@ -124,6 +127,7 @@ impl Ground {
                     DVec3::splat(0.25)
                 }
             }
+            Ground::Floor(texture) => texture.albedo(x, y),
         }
     }
 }
