@@ -1,6 +1,7 @@
 use clap::Parser;
 use colf::cli::train::{
-    run_average, run_configure, run_info, run_propose, run_training, TrainArgs, TrainCommand,
+    run_average, run_configure, run_info, run_plot, run_propose, run_training, TrainArgs,
+    TrainCommand,
 };
 
 fn main() {
@@ -16,9 +17,7 @@ fn main() {
             eprintln!("colf-train: {summary}");
             Ok(())
         }
-        Some(TrainCommand::Plot(plot)) => {
-            colf::train::plot::plot_file(&plot.log, &plot.output, plot.width, plot.height)
-        }
+        Some(TrainCommand::Plot(plot)) => run_plot(plot),
         Some(TrainCommand::Average(average)) => run_average(average),
         Some(TrainCommand::Configure(configure)) => run_configure(configure),
         Some(TrainCommand::Info(info)) => run_info(info),

@@ -1,5 +1,6 @@
 //! colf-train on a tiny fixed dataset: the loss falls, a stopped run resumes exactly (same
-//! weights as an uninterrupted run), SIGTERM checkpoints, and the log plots.
+//! weights as an uninterrupted run), SIGTERM checkpoints, and the log plots (one run or several
+//! in one picture).
 
 use assert_cmd::Command;
 use std::path::Path;
@@ -150,6 +151,95 @@ fn sigterm_checkpoints_and_the_log_plots() {
         .success();
     let img = colf::image_io::read_rgb(png.to_str().unwrap()).unwrap();
     assert_eq!((img.w, img.h), (1000, 700));
+}
+
+/// A small training log of `steps` steps whose loss starts at `loss0`, with one evaluation.
+fn small_log(steps: u32, loss0: f64) -> String {
+    let mut log = String::new();
+    for i in 0..steps {
+        let record = serde_json::json!({"step": i, "loss": loss0 / (1.0 + f64::from(i)),
+            "psnr": 10.0 + f64::from(i), "obj_psnr": 8.0 + f64::from(i), "fg_share": 0.5,
+            "fg_ari": null});
+        log += &format!("{record}\n");
+    }
+    log + &format!(
+        "{}\n",
+        serde_json::json!({"step": steps, "eval": {"psnr": 20.0}})
+    )
+}
+
+#[test]
+fn several_logs_plot_in_one_picture() {
+    let dir = tempfile::tempdir().unwrap();
+    let fused = common::write(dir.path(), "fused.log.jsonl", small_log(30, 1.0).as_bytes());
+    let reference = common::write(dir.path(), "ref.log.jsonl", small_log(20, 2.0).as_bytes());
+    let png = dir.path().join("compare.png");
+    common::bin("colf-train")
+        .args([
+            "plot",
+            &fused,
+            &reference,
+            "--label",
+            "fused",
+            "--label",
+            "reference",
+        ])
+        .args(["--width", "600", "--height", "400", "-o"])
+        .arg(&png)
+        .assert()
+        .success();
+    let img = colf::image_io::read_rgb(png.to_str().unwrap()).unwrap();
+    assert_eq!((img.w, img.h), (600, 400));
+    assert!(img.data.iter().any(|&v| v < 0.5), "blank plot");
+    // Default labels, and a log from stdin beside a file.
+    common::bin("colf-train")
+        .args(["plot", &fused, "-", "-o"])
+        .arg(&png)
+        .write_stdin(small_log(5, 1.0))
+        .assert()
+        .success();
+    // A bad log is named on one line; no output is written.
+    let bad = common::write(dir.path(), "bad.log.jsonl", b"{\"step\":0}\nnot json\n");
+    let missing = dir.path().join("none.png");
+    common::fails_with(
+        common::bin("colf-train")
+            .args(["plot", &fused, &bad, "-o"])
+            .arg(&missing),
+        "train",
+        1,
+        "bad.log.jsonl: line 2: invalid JSON",
+    );
+    assert!(!missing.exists());
+    // Usage errors (exit 2): labels that do not match the logs, too many logs, two stdins.
+    let err = common::fails_with(
+        common::bin("colf-train")
+            .args(["plot", &fused, &reference, "--label", "fused", "-o"])
+            .arg(&missing),
+        "train",
+        2,
+        "--label given once for 2 LOGs",
+    );
+    assert!(err.starts_with("colf-train: error: "), "{err}");
+    let nine = vec![fused.as_str(); 9];
+    common::fails_with(
+        common::bin("colf-train")
+            .arg("plot")
+            .args(&nine)
+            .arg("-o")
+            .arg(&missing),
+        "train",
+        2,
+        "at most 8 logs",
+    );
+    common::fails_with(
+        common::bin("colf-train")
+            .args(["plot", "-", "-", "-o"])
+            .arg(&missing),
+        "train",
+        2,
+        "only one LOG can be stdin",
+    );
+    assert!(!missing.exists());
 }
 
 #[test]

@@ -264,8 +264,13 @@ pub fn run_parser(parser: &str, bytes: &[u8]) -> Result<(), String> {
             ok(a.and(b).and(c).and(d))
         }
         "plot" => ok(
-            colf::train::plot::read_log(&String::from_utf8_lossy(bytes), name)
-                .and_then(|c| colf::train::plot::plot_png(&c, 96, 64).map(|_| ())),
+            colf::train::plot::read_log(&String::from_utf8_lossy(bytes), name).and_then(|curves| {
+                let run = colf::train::plot::Run {
+                    label: name.to_string(),
+                    curves,
+                };
+                colf::train::plot::plot_png(&[run], 96, 64).map(|_| ())
+            }),
         ),
         other => Err(format!("unknown parser {other}")),
     }

@@ -433,20 +433,34 @@ pub fn run_average(args: &AverageArgs) -> anyhow::Result<()> {
 /// `colf-train plot`.
 #[derive(Args, Debug)]
 #[command(
-    about = "Draw training curves from a JSON-lines training log",
+    about = "Draw training curves from JSON-lines training logs, one run or several in one picture",
     long_about = "Draw the curves of a training log (OUT.log.jsonl, as colf-train writes it) \
 into a PNG: loss (log scale); PSNR of the sampled rays and of the rays on objects; the share of \
 object rays won by foreground slots and FG-ARI; and, when the log has evaluations, held-out \
-novel-view PSNR and FG-ARI. Per-step values are drawn faint with a moving average on top."
+novel-view PSNR and FG-ARI. Per-step values are drawn faint with a moving average on top.\n\n\
+Several logs (at most 8) are drawn into the same panels for comparing runs, such as the fused \
+decoder against --reference-decoder from one initialisation, or two recipes. Run i is drawn in \
+colour i of a fixed palette in every panel, a panel's second series is dashed, and the step axis \
+spans all runs. Legend entries read NAME: series, where NAME is the run's --label or else its \
+log's file name without .log.jsonl (or .jsonl). A single log keeps per-series colours and \
+unprefixed legend entries.",
+    after_help = "Examples:\n  colf-train plot model.safetensors.log.jsonl -o curves.png\n  \
+colf-train plot fused/m.safetensors.log.jsonl ref/m.safetensors.log.jsonl \\\n    \
+--label fused --label reference -o compare.png"
 )]
 pub struct PlotArgs {
-    /// The JSON-lines log (`-`: stdin).
-    #[arg(value_name = "LOG")]
-    pub log: String,
+    /// The JSON-lines logs, at most 8 (`-`: stdin, for one of them).
+    #[arg(value_name = "LOG", required = true)]
+    pub logs: Vec<String>,
 
     /// Output PNG (`-`: stdout, refused on a terminal).
     #[arg(short, long, value_name = "PNG")]
     pub output: String,
+
+    /// The legend name of a run: give it once per LOG, in the same order, or not at all
+    /// (default: the log's file name without .log.jsonl).
+    #[arg(long, value_name = "NAME")]
+    pub label: Vec<String>,
 
     /// Width in pixels.
     #[arg(long, default_value_t = 1000, value_name = "W")]
@@ -455,6 +469,51 @@ pub struct PlotArgs {
     /// Height in pixels.
     #[arg(long, default_value_t = 700, value_name = "H")]
     pub height: u32,
+}
+
+impl PlotArgs {
+    /// The logs with their legend names. What clap cannot check (the number of logs and of
+    /// labels, stdin used twice) is a usage error (exit 2).
+    pub fn runs(&self) -> anyhow::Result<Vec<(&str, String)>> {
+        let max = crate::train::plot::MAX_RUNS;
+        let usage = |msg: String| Err(crate::cli::UsageError(msg).into());
+        if self.logs.len() > max {
+            return usage(format!(
+                "at most {max} logs can be drawn in one picture, got {}",
+                self.logs.len()
+            ));
+        }
+        if !self.label.is_empty() && self.label.len() != self.logs.len() {
+            return usage(format!(
+                "--label given {} for {} LOG{}: give one --label per LOG, in order, or none",
+                match self.label.len() {
+                    1 => "once".to_string(),
+                    n => format!("{n} times"),
+                },
+                self.logs.len(),
+                if self.logs.len() == 1 { "" } else { "s" }
+            ));
+        }
+        let stdins = self.logs.iter().filter(|log| crate::io::is_stdio(log));
+        if stdins.count() > 1 {
+            return usage("only one LOG can be stdin (`-`)".to_string());
+        }
+        let label = |i: usize, log: &str| match self.label.get(i) {
+            Some(name) => name.clone(),
+            None => crate::train::plot::default_label(log),
+        };
+        Ok(self
+            .logs
+            .iter()
+            .enumerate()
+            .map(|(i, log)| (log.as_str(), label(i, log)))
+            .collect())
+    }
+}
+
+/// Runs `colf-train plot`.
+pub fn run_plot(args: &PlotArgs) -> anyhow::Result<()> {
+    crate::train::plot::plot_files(&args.runs()?, &args.output, args.width, args.height)
 }
 
 /// `colf-train init`.
@@ -661,6 +720,58 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn plot_args(args: &[&str]) -> PlotArgs {
+        let all = [&["colf-train", "plot"], args].concat();
+        match TrainArgs::try_parse_from(all).unwrap().command {
+            Some(TrainCommand::Plot(plot)) => plot,
+            other => panic!("{other:?}"),
+        }
+    }
+
+    fn plot_usage_error(args: &[&str]) -> String {
+        let err = plot_args(args).runs().unwrap_err();
+        assert!(
+            err.downcast_ref::<crate::cli::UsageError>().is_some(),
+            "{err}"
+        );
+        err.to_string()
+    }
+
+    #[test]
+    fn plot_labels_match_the_logs_or_default_to_file_names() {
+        let runs = plot_args(&["a/x.log.jsonl", "b/y.jsonl", "-o", "p.png"]);
+        assert_eq!(
+            runs.runs().unwrap(),
+            vec![("a/x.log.jsonl", "x".into()), ("b/y.jsonl", "y".into())]
+        );
+        let named = plot_args(&[
+            "a.log.jsonl",
+            "-",
+            "--label",
+            "fused",
+            "--label",
+            "ref",
+            "-o",
+            "p",
+        ]);
+        assert_eq!(
+            named.runs().unwrap(),
+            vec![("a.log.jsonl", "fused".into()), ("-", "ref".into())]
+        );
+        let err = plot_usage_error(&["a", "b", "--label", "x", "-o", "p"]);
+        assert!(err.contains("--label given once for 2 LOGs"), "{err}");
+        let err = plot_usage_error(&["a", "--label", "x", "--label", "y", "-o", "p"]);
+        assert!(err.contains("--label given 2 times for 1 LOG:"), "{err}");
+        let nine: Vec<String> = (0..9).map(|i| format!("{i}.log.jsonl")).collect();
+        let mut args: Vec<&str> = nine.iter().map(String::as_str).collect();
+        args.extend(["-o", "p"]);
+        let err = plot_usage_error(&args);
+        assert!(err.contains("at most 8 logs"), "{err}");
+        let err = plot_usage_error(&["-", "-", "-o", "p"]);
+        assert!(err.contains("only one LOG can be stdin"), "{err}");
+        assert!(TrainArgs::try_parse_from(["colf-train", "plot", "-o", "p"]).is_err());
+    }
 
     #[test]
     fn progress_lines_leave_out_what_a_run_cannot_measure() {
