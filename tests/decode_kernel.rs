@@ -402,7 +402,7 @@ fn a_support_leaves_out_exactly_the_fields_it_drops() {
         .collect();
     let rays = RayBatch::new(&cfg, &scene_rays, &Device::Cpu).unwrap();
     // Field s of scene b keeps the rays where (ray + 3·s + b) % 4 != 0, the background all.
-    let keeps = |bi: usize, si: usize, ri: usize| si == 0 || (ri + 3 * si + bi) % 4 != 0;
+    let keeps = |bi: usize, si: usize, ri: usize| si == 0 || !(ri + 3 * si + bi).is_multiple_of(4);
     let support: Vec<Vec<u32>> = (0..b * s)
         .map(|u| {
             (0..r)

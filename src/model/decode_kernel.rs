@@ -1388,14 +1388,14 @@ impl DecodeOp {
             // Shadow head: σ = softplus(g·(w·f + b))·ground.
             let shadow_features = if let (true, Some((w, bias))) = (casts, sh.shared.shadow) {
                 let gain = SHADOW_LOGIT_GAIN as f32;
-                for i in 0..n {
+                for (i, ga) in g_affine[..n].iter_mut().enumerate() {
                     let ray = pass.ray(r0 + i);
                     let ground = match (sh.shadow_lines, rays.on_ground) {
                         (true, Some(g)) => g[b0 + ray],
                         _ => 1.0,
                     };
                     let a = pass.shadow_affine[r0 + i];
-                    g_affine[i] = grads.sigma[ray] * ground * gain * sigmoid(gain * a);
+                    *ga = grads.sigma[ray] * ground * gain * sigmoid(gain * a);
                 }
                 let source = match &pass.shadow_lfn {
                     Some(acts) => acts.output(),
