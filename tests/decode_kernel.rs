@@ -112,6 +112,27 @@ fn scene(
     (frames, origins, dirs)
 }
 
+/// The rays of `b` scenes from [`scene`], encoded.
+fn random_batch(
+    cfg: &Config,
+    rng: &mut StdRng,
+    b: usize,
+    k: usize,
+    r: usize,
+    extreme: bool,
+) -> RayBatch {
+    let scenes: Vec<_> = (0..b).map(|_| scene(rng, k, r, extreme)).collect();
+    let scene_rays: Vec<SceneRays> = scenes
+        .iter()
+        .map(|(f, o, dir)| SceneRays {
+            slot_to_world: f,
+            origins: o,
+            dirs: dir,
+        })
+        .collect();
+    RayBatch::new(cfg, &scene_rays, &Device::Cpu).unwrap()
+}
+
 struct Case {
     cfg: Config,
     k: usize,
@@ -137,18 +158,7 @@ fn run(case: &Case, reference: bool) -> Run {
     let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
     let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
     let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
-    let scenes: Vec<_> = (0..b)
-        .map(|_| scene(&mut rng, k, case.rays, case.extreme))
-        .collect();
-    let scene_rays: Vec<SceneRays> = scenes
-        .iter()
-        .map(|(f, o, dir)| SceneRays {
-            slot_to_world: f,
-            origins: o,
-            dirs: dir,
-        })
-        .collect();
-    let mut rays = RayBatch::new(&case.cfg, &scene_rays, &Device::Cpu).unwrap();
+    let mut rays = random_batch(&case.cfg, &mut rng, b, k, case.rays, case.extreme);
     let mut ray_vars = Vec::new();
     if case.ray_grads {
         let coords = Var::from_tensor(&rays.coords).unwrap();
@@ -391,16 +401,7 @@ fn a_support_leaves_out_exactly_the_fields_it_drops() {
     let mut rng = StdRng::seed_from_u64(4);
     let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
     let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
-    let scenes: Vec<_> = (0..b).map(|_| scene(&mut rng, k, r, false)).collect();
-    let scene_rays: Vec<SceneRays> = scenes
-        .iter()
-        .map(|(f, o, dir)| SceneRays {
-            slot_to_world: f,
-            origins: o,
-            dirs: dir,
-        })
-        .collect();
-    let rays = RayBatch::new(&cfg, &scene_rays, &Device::Cpu).unwrap();
+    let rays = random_batch(&cfg, &mut rng, b, k, r, false);
     // Field s of scene b keeps the rays where (ray + 3·s + b) % 4 != 0, the background all.
     let keeps = |bi: usize, si: usize, ri: usize| si == 0 || !(ri + 3 * si + bi).is_multiple_of(4);
     let support: Vec<Vec<u32>> = (0..b * s)

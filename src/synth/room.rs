@@ -794,6 +794,15 @@ fn lerp3(a: [f64; 3], b: [f64; 3], t: f64) -> DVec3 {
 }
 
 impl FloorTexture {
+    /// The texture's first albedo where `which` is 0, its second elsewhere (checks, stripes).
+    fn two_tone(&self, which: i64) -> DVec3 {
+        DVec3::from_array(if which == 0 {
+            self.albedo_a
+        } else {
+            self.albedo_b
+        })
+    }
+
     /// Linear albedo at floor point (x, y).
     pub fn albedo(&self, x: f64, y: f64) -> DVec3 {
         let (s, c) = self.rotation_degrees.to_radians().sin_cos();
@@ -851,23 +860,13 @@ impl FloorTexture {
             }
             FloorPattern::Checker => {
                 let parity = ((u / w).floor() as i64 + (v / w).floor() as i64) & 1;
-                let base = if parity == 0 {
-                    self.albedo_a
-                } else {
-                    self.albedo_b
-                };
                 let n = value_noise(u / (0.5 * w), v / (0.5 * w), seed ^ 0x4348);
-                DVec3::from_array(base) * grain(n)
+                self.two_tone(parity) * grain(n)
             }
             FloorPattern::Stripes => {
                 let band = (v / w).floor() as i64 & 1;
-                let base = if band == 0 {
-                    self.albedo_a
-                } else {
-                    self.albedo_b
-                };
                 let n = value_noise(u / (0.03 * w), v / (0.03 * w), seed ^ 0x5354);
-                DVec3::from_array(base) * grain(n)
+                self.two_tone(band) * grain(n)
             }
             FloorPattern::Stone => {
                 let n = 0.55 * value_noise(u / w, v / w, seed)
