@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -250,7 +250,7 @@ UNSUP_COMMON := --proposals --attention-mask-weight 0.1 \
 UNSUP_LATE := $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train2k --eval-every 2000 --eval-scenes 16
 # $(call unlabelled_set,DIR,SCENES): colf-synth's training scenes without their mask files.
 define unlabelled_set
-	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) -q --force \
+	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) $(3) -q --force \
 	  && find $(1).tmp -name '*.mask.png' -delete && mv $(1).tmp $(1); }
 endef
 model-unsupervised: build
@@ -344,6 +344,47 @@ PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=12
 model-paper: build
 	$(MAKE) model-unsupervised UNSUP_RUN=$(PAPER_RUN)/unsup UNSUP_SETS='$(PAPER_DECODER)'
 	$(MAKE) model-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both BOTH_INSTALL=
+
+# Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the bundled
+# default model adapted to each room set without labels, the paper's curriculum — 128,000 steps
+# at 64² (its 128,000 iterations), then 128² — on unlabelled colf-synth room scenes (the paper's
+# 1,000 and 5,000 training scenes; mask files deleted), proposals for the attention mask loss as
+# in the default model's last stage. Held-out: 16 validation scenes (64², then 128²) scored as it
+# trains, 100 test scenes at 128² at the end. Data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the
+# work tree; re-running resumes. Run with one thread beside the other long run:
+#   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
+ROOM_RUN ?= $(HOME)/colf-runs/rooms
+ROOM_COMMON := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
+  --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
+# $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset.
+define room_model
+	@mkdir -p $(ROOM_RUN)/$(1)/data
+	$(call unlabelled_set,$(ROOM_RUN)/$(1)/data/train,$(2),--preset $(1))
+	$(call unlabelled_set,$(ROOM_RUN)/$(1)/data/train128,$(2),--preset $(1) --size 128)
+	test -d $(ROOM_RUN)/$(1)/data/val || $(RELEASE)/colf-synth --preset $(1) \
+	  --out $(ROOM_RUN)/$(1)/data/val --scenes 16 --seed 7 -q
+	test -d $(ROOM_RUN)/$(1)/data/val128 || $(RELEASE)/colf-synth --preset $(1) \
+	  --out $(ROOM_RUN)/$(1)/data/val128 --scenes 16 --seed 7 --size 128 -q
+	test -d $(ROOM_RUN)/$(1)/data/test128 || $(RELEASE)/colf-synth --preset $(1) \
+	  --out $(ROOM_RUN)/$(1)/data/test128 --scenes 100 --split test --size 128 -q
+	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_RUN)/$(1)/data/train \
+	  --eval-data $(ROOM_RUN)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
+	  --steps 128000 --lr 5e-5 --warmup 200 --decay-from 96000 --final-lr 1e-5 --seed $(3) \
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,models/default.safetensors)
+	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_RUN)/$(1)/data/train128 \
+	  --eval-data $(ROOM_RUN)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128.safetensors \
+	  --steps 90000 --lr 2e-5 --warmup 100 --decay-from 60000 --final-lr 2e-6 --seed $(3) \
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors)
+	$(RELEASE)/colf-train plot $(ROOM_RUN)/$(1)/r64.safetensors.log.jsonl \
+	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl --label 64 --label 128 -o $(ROOM_RUN)/$(1)/training.png
+	$(call eval_json,$(ROOM_RUN)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval.json)
+	$(call eval_json,$(ROOM_RUN)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval-fast.json,--fast)
+endef
+model-room-chair: build
+	$(call room_model,room-chair,1000,81)
+model-room-diverse: build
+	$(call room_model,room-diverse,5000,82)
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1
