@@ -19,8 +19,9 @@
 //!
 //! Units run in parallel on rayon's threads with single-threaded `gemm`s; each unit's share of a
 //! shared gradient is kept apart and the shares are summed in unit order, so the result is the
-//! same bytes whatever the thread count. `tests` check values and every gradient against the
-//! candle composition (`ColfNet::decode_reference`) on random models.
+//! same bytes whatever the thread count. `tests/decode_kernel.rs` checks values and every
+//! gradient against the candle composition (`ColfNet::decode_reference`) on random models.
+//! With a support ([`DecodeOp::with_support`]) a field runs only on the rays listed for it.
 //!
 //! The op's inputs: the S·B light fields' generated parameters packed as [B·S, P] (per layer the
 //! weight [in, out] row-major, then the bias), the heads' and compositor's parameters packed as
