@@ -423,10 +423,53 @@ fn dense_backward(
     }
 }
 
-/// An MLP's activations for all rows of a unit, one buffer per layer ([rows, out]).
+/// An MLP's activations for all rows of a unit, one buffer per layer ([rows, out]). The buffers
+/// come from [`BUFFERS`] and go back there when the activations are dropped (with the op, after
+/// the backward), so a training run's steps reuse the same memory instead of zeroing ~100 MB of
+/// fresh buffers each.
 #[derive(Debug, Default)]
 struct Activations {
     layers: Vec<Vec<f32>>,
+}
+
+/// Activation buffers kept for the next op: their contents are stale, and every element is
+/// written by a forward pass before anything reads it (each layer's `gemm` writes all its rows).
+static BUFFERS: Mutex<Vec<Vec<f32>>> = Mutex::new(Vec::new());
+
+/// At most this many buffers wait in [`BUFFERS`] (a step of K = 60 slots needs ~2,000).
+const MAX_KEPT_BUFFERS: usize = 4096;
+
+/// A buffer of `len` floats whose contents are unspecified (a kept one when one is large enough).
+fn buffer(len: usize) -> Vec<f32> {
+    let kept = {
+        let mut kept = BUFFERS.lock().unwrap_or_else(|e| e.into_inner());
+        let best = kept
+            .iter()
+            .enumerate()
+            .filter(|(_, b)| b.capacity() >= len)
+            .min_by_key(|(_, b)| b.capacity())
+            .map(|(i, _)| i);
+        best.map(|i| kept.swap_remove(i))
+    };
+    match kept {
+        Some(mut b) => {
+            // Shrinking keeps the old values; growing within the capacity zero-fills the rest.
+            b.resize(len, 0.0);
+            b
+        }
+        None => vec![0f32; len],
+    }
+}
+
+impl Drop for Activations {
+    fn drop(&mut self) {
+        let mut kept = BUFFERS.lock().unwrap_or_else(|e| e.into_inner());
+        for b in self.layers.drain(..) {
+            if kept.len() < MAX_KEPT_BUFFERS && b.capacity() > 0 {
+                kept.push(b);
+            }
+        }
+    }
 }
 
 impl Activations {
@@ -435,7 +478,7 @@ impl Activations {
             layers: mlp
                 .layers
                 .iter()
-                .map(|l| vec![0f32; rows * l.fan_out])
+                .map(|l| buffer(rows * l.fan_out))
                 .collect(),
         }
     }
