@@ -2,11 +2,17 @@
 //! without any ground-truth mask.
 //!
 //! In a CLEVR-like view the floor fills the frame and changes slowly across it (constant in
-//! colf-synth's analytic scenes, a smooth light falloff in Blender's). So:
+//! colf-synth's analytic scenes, a smooth light falloff in Blender's); a room adds walls and a
+//! wooden or tiled floor. So:
 //! 1. **Background**: a low-order polynomial in the pixel coordinates is fitted to each colour
 //!    channel by trimmed least squares — refitted on the pixels it explains, so objects (a few
-//!    per cent of the view) do not pull it.
-//! 2. **Candidates**: pixels farther from that background than `threshold` in some channel.
+//!    per cent of the view) do not pull it. A wall is a large region of one chromaticity far
+//!    from that floor and touching the view's border: it gets a surface of its own (up to
+//!    `layers` of them), and the floor is refitted without it.
+//! 2. **Candidates**: pixels farther from their surface than `threshold` in some channel. A
+//!    textured surface (its trimmed fit's residuals spread widely) has a wider tolerance,
+//!    `texture` × that spread: pixels between `threshold` and it are [`UNSURE`], the grain of
+//!    the wood or a dim object of its colour.
 //! 3. **Lighting**: a candidate that is a uniformly darkened or brightened copy of the
 //!    background (equal ratios in R, G and B, below `shadow_ratio` or above its inverse) is a
 //!    shadow or a light's bright spot the polynomial did not follow, not an object, and is
@@ -59,6 +65,15 @@ pub struct ProposalParams {
     pub min_area: f32,
     /// Width in pixels of the [`UNSURE`] band around each instance.
     pub ring: usize,
+    /// At most this many background surfaces besides the floor (walls, a sky).
+    pub layers: usize,
+    /// A background surface covers at least this share of the view.
+    pub layer_area: f32,
+    /// Total degree of a background surface's polynomial.
+    pub layer_degree: usize,
+    /// A surface's tolerance is at least this many times its spread (the 75th percentile of
+    /// its pixels' residuals), so textured floors do not become candidates.
+    pub texture: f32,
 }
 
 impl Default for ProposalParams {
@@ -73,6 +88,10 @@ impl Default for ProposalParams {
             merge_below: 0.002,
             min_area: 0.001,
             ring: 1,
+            layers: 3,
+            layer_area: 0.05,
+            layer_degree: 2,
+            texture: 2.5,
         }
     }
 }
@@ -85,15 +104,23 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
     if n == 0 {
         return Vec::new();
     }
-    let background = fit_background(image, params.degree, params.passes);
+    let (background, tolerance) = background_layers(image, params);
     let data = &image.data;
     let mut object = vec![false; n];
     let mut ids = vec![0u8; n];
     for p in 0..n {
         let pixel = &data[3 * p..3 * p + 3];
         let floor = &background[3 * p..3 * p + 3];
-        let far = (0..3).any(|c| (pixel[c] - floor[c]).abs() > params.threshold);
-        if !far {
+        let distance = (0..3)
+            .map(|c| (pixel[c] - floor[c]).abs())
+            .fold(0f32, f32::max);
+        if distance <= params.threshold {
+            continue;
+        }
+        if distance <= tolerance[p] {
+            // Within the grain of a textured surface: maybe an object of its colour, maybe
+            // the surface; left to the colour loss.
+            ids[p] = UNSURE;
             continue;
         }
         let ratios: [f32; 3] = std::array::from_fn(|c| pixel[c] / floor[c].max(1e-3));
@@ -111,17 +138,7 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         }
     }
     let min_area = ((params.min_area as f64 * n as f64).ceil() as usize).max(1);
-    let chroma: Vec<[f32; 3]> = (0..n)
-        .map(|p| {
-            let px = &data[3 * p..3 * p + 3];
-            let sum = (px[0] + px[1] + px[2]).max(1e-3);
-            [px[0] / sum, px[1] / sum, px[2] / sum]
-        })
-        .collect();
-    let joined = |p: usize, q: usize| {
-        (0..3).all(|c| (chroma[p][c] - chroma[q][c]).abs() < params.chroma_edge)
-    };
-    let fragments = components_8(&object, w, h, joined);
+    let fragments = components_8(&object, w, h, |p, q| same_chroma(image, p, q, params));
     let merge_below = (params.merge_below as f64 * n as f64).ceil() as usize;
     let mut components = merge_fragments(fragments, w, h, merge_below);
     // Largest first; ties by the first pixel, so the numbering is deterministic.
@@ -147,6 +164,115 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         }
     }
     ids
+}
+
+/// Whether neighbouring pixels `p` and `q` have nearly the same chromaticity (r, g, b over
+/// r + g + b; within `params.chroma_edge` in every channel).
+fn same_chroma(image: &RgbImage32, p: usize, q: usize, params: &ProposalParams) -> bool {
+    let chroma = |p: usize| {
+        let px = &image.data[3 * p..3 * p + 3];
+        let sum = (px[0] + px[1] + px[2]).max(1e-3);
+        [px[0] / sum, px[1] / sum, px[2] / sum]
+    };
+    let (a, b) = (chroma(p), chroma(q));
+    (0..3).all(|c| (a[c] - b[c]).abs() < params.chroma_edge)
+}
+
+/// The background under every pixel: its colour (RGB, row-major) and how far a pixel may stray
+/// from it and still be background (its surface's tolerance).
+///
+/// The floor is fitted first, to the whole view. A room's wall, a sky or a second ground
+/// plane is not that polynomial, so its pixels are far from it: they make a large component of
+/// same-chromaticity candidates touching the view's border, which an object standing in the
+/// scene rarely does. Up to `params.layers` times, the largest such component (≥
+/// `params.layer_area` of the view) gets a surface of its own, fitted to it alone; if that
+/// surface explains at least `params.layer_area` of the view, those pixels are its background
+/// (else the search stops), and the floor is refitted without them. A surface's tolerance is
+/// `params.threshold`, or `params.texture` times its own spread where that is larger, so a
+/// wooden or tiled floor's grain is not taken for objects.
+fn background_layers(image: &RgbImage32, params: &ProposalParams) -> (Vec<f32>, Vec<f32>) {
+    let n = (image.w * image.h) as usize;
+    let (w, h) = (image.w as usize, image.h as usize);
+    let tolerance_of = |surface: &Surface| params.threshold.max(params.texture * surface.spread);
+    let distance = |p: usize, colour: &[f32]| {
+        (0..3)
+            .map(|c| (image.data[3 * p + c] - colour[3 * p + c]).abs())
+            .fold(0f32, f32::max)
+    };
+    let on_border = |p: usize| {
+        let (x, y) = (p % w, p / w);
+        x == 0 || y == 0 || x + 1 == w || y + 1 == h
+    };
+    let layer_area = ((params.layer_area as f64 * n as f64).ceil() as usize).max(1);
+    let mut claimed = vec![false; n];
+    let floor = fit_surface(image, &vec![true; n], params.degree, params.passes);
+    let mut tolerance = vec![tolerance_of(&floor); n];
+    let mut background = floor.colour;
+    for _ in 0..params.layers {
+        let candidate: Vec<bool> = (0..n)
+            .map(|p| !claimed[p] && distance(p, &background) > params.threshold)
+            .collect();
+        let mut regions: Vec<Vec<usize>> =
+            components_8(&candidate, w, h, |p, q| same_chroma(image, p, q, params))
+                .into_iter()
+                .filter(|c| c.len() >= layer_area && c.iter().any(|&p| on_border(p)))
+                .collect();
+        regions.sort_by_key(|c| (std::cmp::Reverse(c.len()), c[0]));
+        let unclaimed = claimed.iter().filter(|&&c| !c).count();
+        // The largest region a surface of its own explains well enough. The floor stays the
+        // largest surface: were this one larger than what is left, the floor's refit on the
+        // rest could bend through the objects standing on it.
+        let found = regions.iter().find_map(|region| {
+            let mut inside = vec![false; n];
+            for &p in region {
+                inside[p] = true;
+            }
+            let surface = fit_surface(image, &inside, params.layer_degree, params.passes);
+            let surface_tolerance = tolerance_of(&surface);
+            // The pixels it explains, grown from the region into its neighbours of the same
+            // chromaticity that it explains too: the floor's first fit bent towards the wall,
+            // so the wall's pixels nearest the floor's were not far from it.
+            let fits = |p: usize| distance(p, &surface.colour) <= surface_tolerance;
+            let mut explained: Vec<usize> = region.iter().copied().filter(|&p| fits(p)).collect();
+            let mut taken = vec![false; n];
+            for &p in &explained {
+                taken[p] = true;
+            }
+            let mut next = 0;
+            while next < explained.len() {
+                let p = explained[next];
+                next += 1;
+                for q in neighbours_8(p, w, h) {
+                    if !taken[q] && !claimed[q] && fits(q) && same_chroma(image, p, q, params) {
+                        taken[q] = true;
+                        explained.push(q);
+                    }
+                }
+            }
+            (explained.len() >= layer_area && 2 * explained.len() <= unclaimed).then_some((
+                surface,
+                surface_tolerance,
+                explained,
+            ))
+        });
+        let Some((surface, surface_tolerance, explained)) = found else {
+            break;
+        };
+        for &p in &explained {
+            claimed[p] = true;
+            background[3 * p..3 * p + 3].copy_from_slice(&surface.colour[3 * p..3 * p + 3]);
+            tolerance[p] = surface_tolerance;
+        }
+        // The floor's fit no longer has to bend towards the surface just found.
+        let rest: Vec<bool> = claimed.iter().map(|&c| !c).collect();
+        let floor = fit_surface(image, &rest, params.degree, params.passes);
+        let floor_tolerance = tolerance_of(&floor);
+        for p in (0..n).filter(|&p| !claimed[p]) {
+            background[3 * p..3 * p + 3].copy_from_slice(&floor.colour[3 * p..3 * p + 3]);
+            tolerance[p] = floor_tolerance;
+        }
+    }
+    (background, tolerance)
 }
 
 /// How a view's proposals compare with its ground-truth mask (only to report their quality:
@@ -220,6 +346,22 @@ pub fn score(ids: &[u8], truth: &[u8]) -> anyhow::Result<ProposalScore> {
 /// on the pixels whose largest channel residual is under 2.5× the 75th percentile of the kept
 /// pixels' (at least 0.01).
 pub fn fit_background(image: &RgbImage32, degree: usize, passes: usize) -> Vec<f32> {
+    let everywhere = vec![true; (image.w * image.h) as usize];
+    fit_surface(image, &everywhere, degree, passes).colour
+}
+
+/// A smooth surface fitted to part of a view: its colour at every pixel, and how far the
+/// pixels it was fitted on stray from it.
+struct Surface {
+    colour: Vec<f32>,
+    /// The 75th percentile of the largest channel residual over the pixels kept by the last
+    /// trimming pass: the surface's own texture and noise.
+    spread: f32,
+}
+
+/// [`fit_background`] on the pixels of `region` only (the trimming starts from them); the
+/// polynomial is evaluated everywhere.
+fn fit_surface(image: &RgbImage32, region: &[bool], degree: usize, passes: usize) -> Surface {
     let (w, h) = (image.w as usize, image.h as usize);
     let n = w * h;
     let terms: Vec<(usize, usize)> = (0..=degree)
@@ -234,8 +376,9 @@ pub fn fit_background(image: &RgbImage32, degree: usize, passes: usize) -> Vec<f
             .collect()
     };
     let rows: Vec<Vec<f64>> = (0..n).map(basis).collect();
-    let mut keep = vec![true; n];
+    let mut keep = region.to_vec();
     let mut fitted = vec![0f32; 3 * n];
+    let mut spread = 0f32;
     for pass in 0..passes.max(1) {
         let coefficients = least_squares(&rows, &image.data, &keep, terms.len());
         let mut residuals = Vec::with_capacity(n);
@@ -248,24 +391,28 @@ pub fn fit_background(image: &RgbImage32, degree: usize, passes: usize) -> Vec<f
             }
             residuals.push(worst);
         }
-        if pass + 1 == passes.max(1) {
-            break;
-        }
         let mut kept: Vec<f32> = (0..n).filter(|&p| keep[p]).map(|p| residuals[p]).collect();
         if kept.is_empty() {
             break;
         }
         let at = ((kept.len() * 3) / 4).min(kept.len() - 1);
         let (_, q75, _) = kept.select_nth_unstable_by(at, f32::total_cmp);
+        spread = *q75;
+        if pass + 1 == passes.max(1) {
+            break;
+        }
         let limit = (*q75 * 2.5).max(0.01);
-        let next: Vec<bool> = residuals.iter().map(|&r| r < limit).collect();
+        let next: Vec<bool> = (0..n).map(|p| region[p] && residuals[p] < limit).collect();
         // Too few pixels left to fit the polynomial: keep the previous fit's pixels.
         if next.iter().filter(|&&k| k).count() < 4 * terms.len() {
             break;
         }
         keep = next;
     }
-    fitted
+    Surface {
+        colour: fitted,
+        spread,
+    }
 }
 
 /// Per channel, the coefficients minimising Σ_kept (row·coef − value)², from the normal
@@ -512,6 +659,70 @@ mod tests {
         assert_eq!(at(10, 6), UNSURE, "the ring around an instance");
         assert_eq!(at(16, 14), 0, "open floor");
         assert_eq!(at(0, 31), 0);
+    }
+
+    /// The rows above which every pixel is wall in [`room`].
+    const WALL: usize = 8;
+
+    /// A 48×48 room seen towards a corner: two grey walls (brighter to the left) whose foot
+    /// drops from row `WALL` at the view's sides to row 16 in the middle, a brown floor (a wood
+    /// grain of up to ±`grain` in 2-pixel stripes) and a blue chair-sized block on it.
+    fn room(grain: f32) -> RgbImage32 {
+        image(48, 48, |x, y| {
+            if y < 16 - x.abs_diff(24) / 3 {
+                [0.7 - 0.004 * x as f32; 3]
+            } else if (20..28).contains(&x) && (26..36).contains(&y) {
+                [0.1, 0.2, 0.8]
+            } else {
+                let g = grain * [1.0, 0.3, -0.3, -1.0][(x / 2 + y) % 4];
+                [0.5 + g, 0.3 + 0.3 * g, 0.2]
+            }
+        })
+    }
+
+    #[test]
+    fn a_wall_is_a_surface_of_its_own_not_an_object() {
+        let img = room(0.0);
+        let ids = propose(&img, &ProposalParams::default());
+        assert_eq!(ids[30 * 48 + 23], 1, "the block is the one instance");
+        assert!(ids.iter().all(|&id| id == 0 || id == 1 || id == UNSURE));
+        let wall_background = (0..WALL * 48).filter(|&p| ids[p] == 0).count();
+        assert!(wall_background > WALL * 48 * 9 / 10, "{wall_background}");
+        let flat = ProposalParams {
+            layers: 0,
+            ..ProposalParams::default()
+        };
+        // Without it the floor's polynomial bends towards the wall and leaves a band of
+        // instances and unsure pixels along it.
+        let wall_background_flat = propose(&img, &flat)[..WALL * 48]
+            .iter()
+            .filter(|&&id| id == 0)
+            .count();
+        assert!(
+            wall_background_flat < wall_background,
+            "{wall_background_flat}"
+        );
+        assert!(propose(&img, &flat)
+            .iter()
+            .any(|&id| id > 1 && is_instance(id)));
+    }
+
+    #[test]
+    fn wood_grain_is_unsure_not_objects() {
+        let img = room(0.1);
+        let ids = propose(&img, &ProposalParams::default());
+        assert_eq!(ids[30 * 48 + 23], 1, "the block is the one instance");
+        assert!(ids.iter().all(|&id| id == 0 || id == 1 || id == UNSURE));
+        let smooth = ProposalParams {
+            texture: 0.0,
+            ..ProposalParams::default()
+        };
+        let grain_instances = propose(&img, &smooth)
+            .iter()
+            .enumerate()
+            .filter(|&(p, &id)| p >= WALL * 48 && is_instance(id) && img.data[3 * p + 2] < 0.5)
+            .count();
+        assert!(grain_instances > 0);
     }
 
     #[test]
