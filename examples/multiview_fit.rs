@@ -94,7 +94,7 @@ fn main() -> Result<()> {
                     scene.views.len()
                 );
             }
-            let mut codes = encode_scene(&model, &scene, &eval)?;
+            let mut codes = encode_scene(&model, &scene, &[0], &eval)?;
             let views: Vec<InputView> = scene.views[..fit]
                 .iter()
                 .map(|v| InputView::new(&v.frame, &v.image))

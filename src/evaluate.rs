@@ -3,6 +3,11 @@
 //! NV-ARI and NV-FG-ARI averaged over the other views; then the mean (and the standard
 //! deviation) over scenes.
 //!
+//! With several input views (`colf-eval --input-views 0,1,2`), those views are encoded
+//! together (`encode::multiview`); ARI, FG-ARI and the input PSNR are averaged over them, the
+//! novel-view scores over the rest, and the objects that two or more input views show are
+//! checked to be drawn by exactly one slot ([`SceneScores::objects_one_slot`]).
+//!
 //! NV-ARI is uORF's (`models/uorf_eval_model.py`), as every published CLEVR-567 table uses it:
 //! the adjusted Rand index of the full label maps of a novel view, background included. The
 //! FG-ARI of the novel views (ground-truth object pixels only) is a different number and is
@@ -10,7 +15,8 @@
 
 use crate::codes::Codes;
 use crate::dataset::{Dataset, SceneData};
-use crate::encode::{encode_image, EncodeOptions};
+use crate::encode::multiview::{encode_views, ViewInput};
+use crate::encode::EncodeOptions;
 use crate::metrics::{ari, fg_ari, mean_std, psnr, ssim};
 use crate::model::Colf;
 use crate::render::output::FrameRender;
@@ -39,7 +45,50 @@ pub struct SceneScores {
     pub slots_used: usize,
     /// Foreground slots in the encoding (after redundant slots were dropped).
     pub slots_kept: usize,
+    /// With several input views: the ground-truth objects that at least two of them show
+    /// (at least [`MIN_OBJECT_PIXELS`] pixels each).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub objects_seen_twice: Option<usize>,
+    /// …and of those, the objects drawn by exactly one slot: across the input views that show
+    /// the object, one and the same slot, and no other, wins at least [`SLOT_SHARE`] of its
+    /// pixels (an object drawn by two slots, or by the background alone, fails).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub objects_one_slot: Option<usize>,
 }
+
+/// Which views of a scene are encoded and which are scored as novel views.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Protocol {
+    /// Encoded together (`[0]`: uORF's protocol).
+    pub inputs: Vec<usize>,
+    /// Scored as novel views (None: every view that is not an input).
+    pub novel: Option<Vec<usize>>,
+}
+
+impl Default for Protocol {
+    fn default() -> Self {
+        Protocol {
+            inputs: vec![0],
+            novel: None,
+        }
+    }
+}
+
+impl Protocol {
+    /// Whether view `v` is scored as a novel view.
+    fn is_novel(&self, v: usize) -> bool {
+        match &self.novel {
+            Some(novel) => novel.contains(&v),
+            None => !self.inputs.contains(&v),
+        }
+    }
+}
+
+/// An object shows in a view when its mask has at least this many pixels there.
+pub const MIN_OBJECT_PIXELS: usize = 10;
+
+/// A slot draws an object in a view when it wins at least this share of the object's pixels.
+pub const SLOT_SHARE: f64 = 0.25;
 
 /// Means over scenes (each over the scenes where the score is defined), and for the quality
 /// scores the population standard deviation over the same scenes (`*_std`).
@@ -63,6 +112,12 @@ pub struct DatasetScores {
     pub fg_share: Option<f64>,
     pub slots_used: f64,
     pub slots_kept: f64,
+    /// With several input views: the share of the objects seen by two or more of them that
+    /// exactly one slot draws (over all scenes' objects), and how many such objects there were.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub one_slot_share: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub objects_seen_twice: Option<usize>,
 }
 
 /// The quality scores of [`DatasetScores`] that carry a mean and a standard deviation, by name.
@@ -91,6 +146,14 @@ impl DatasetScores {
         let (fg_ari, fg_ari_std) = stat(|r| r.fg_ari);
         let (nv_ari, nv_ari_std) = stat(|r| r.nv_ari);
         let (nv_fg_ari, nv_fg_ari_std) = stat(|r| r.nv_fg_ari);
+        let objects_seen_twice = rows
+            .iter()
+            .filter_map(|r| r.objects_seen_twice)
+            .reduce(|a, b| a + b);
+        let one_slot: usize = rows.iter().filter_map(|r| r.objects_one_slot).sum();
+        let one_slot_share = objects_seen_twice
+            .filter(|&n| n > 0)
+            .map(|n| one_slot as f64 / n as f64);
         DatasetScores {
             scenes: rows.len(),
             psnr,
@@ -110,31 +173,66 @@ impl DatasetScores {
             fg_share: mean(rows.iter().map(|r| r.fg_share)),
             slots_used: mean(rows.iter().map(|r| Some(r.slots_used as f64))).unwrap_or(0.0),
             slots_kept: mean(rows.iter().map(|r| Some(r.slots_kept as f64))).unwrap_or(0.0),
+            one_slot_share,
+            objects_seen_twice,
         }
     }
 }
 
-/// Encodes view 0 of `scene` as the protocol does (slots placed with view 0's camera).
-/// `opts` says how (its camera and source are set from the scene).
-pub fn encode_scene(model: &Colf, scene: &SceneData, opts: &EncodeOptions) -> Result<Codes> {
-    let Some(input) = scene.views.first() else {
-        bail!("scene {} has no views", scene.name);
-    };
-    let opts = EncodeOptions {
-        camera: Some(input.frame.clone()),
-        source: scene.name.clone(),
-        ..opts.clone()
-    };
-    encode_image(model, &input.image, &opts)
+/// Encodes the views `inputs` of `scene` (view 0 alone: the protocol's encoding, slots placed
+/// with view 0's camera). `opts` says how (cameras and sources are set from the scene).
+pub fn encode_scene(
+    model: &Colf,
+    scene: &SceneData,
+    inputs: &[usize],
+    opts: &EncodeOptions,
+) -> Result<Codes> {
+    check_inputs(scene, inputs)?;
+    let views: Vec<ViewInput> = inputs
+        .iter()
+        .map(|&v| ViewInput {
+            image: &scene.views[v].image,
+            camera: scene.views[v].frame.clone(),
+            // One view keeps the protocol's source name (the scene's), several name the view.
+            source: if inputs.len() == 1 {
+                scene.name.clone()
+            } else {
+                format!("{}/view{v}", scene.name)
+            },
+        })
+        .collect();
+    Ok(encode_views(model, &views, opts)?.0)
 }
 
-/// Encodes view 0 of `scene` and renders every view; returns the codes and the renders.
+/// Refuses input views a scene does not have, or none, or one twice.
+fn check_inputs(scene: &SceneData, inputs: &[usize]) -> Result<()> {
+    if inputs.is_empty() {
+        bail!("no input view to encode");
+    }
+    for (i, &v) in inputs.iter().enumerate() {
+        if v >= scene.views.len() {
+            bail!(
+                "scene {} has {} views; there is no input view {v}",
+                scene.name,
+                scene.views.len()
+            );
+        }
+        if inputs[..i].contains(&v) {
+            bail!("input view {v} is named twice");
+        }
+    }
+    Ok(())
+}
+
+/// Encodes the views `inputs` of `scene` and renders every view; returns the codes and the
+/// renders.
 pub fn encode_and_render(
     model: &Colf,
     scene: &SceneData,
+    inputs: &[usize],
     opts: &EncodeOptions,
 ) -> Result<(Codes, Vec<FrameRender>)> {
-    let codes = encode_scene(model, scene, opts)?;
+    let codes = encode_scene(model, scene, inputs, opts)?;
     let prepared = PreparedScene::new(model, &codes, &scene.name)?;
     let renders = scene
         .views
@@ -144,14 +242,33 @@ pub fn encode_and_render(
     Ok((codes, renders))
 }
 
-/// Scores one scene from its renders (one per view, in order).
-pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneScores> {
+/// Scores one scene from its renders (one per view, in order), as `protocol` says.
+pub fn score_scene(
+    scene: &SceneData,
+    renders: &[FrameRender],
+    protocol: &Protocol,
+) -> Result<SceneScores> {
+    let inputs = &protocol.inputs;
+    if let Some(&v) = protocol
+        .novel
+        .iter()
+        .flatten()
+        .find(|&&v| v >= scene.views.len())
+    {
+        bail!(
+            "scene {} has {} views; there is no novel view {v}",
+            scene.name,
+            scene.views.len()
+        );
+    }
     let mut row = SceneScores {
         scene: scene.name.clone(),
         ..Default::default()
     };
     let (mut psnrs, mut ssims) = (Vec::new(), Vec::new());
     let (mut nv_aris, mut nv_fg_aris) = (Vec::new(), Vec::new());
+    let (mut input_psnrs, mut input_aris, mut input_fg_aris) = (Vec::new(), Vec::new(), Vec::new());
+    let mut used: Vec<u32> = Vec::new();
     let (mut fg_won, mut fg_total) = (0usize, 0usize);
     for (i, (view, render)) in scene.views.iter().zip(renders).enumerate() {
         let (w, h) = (view.image.w, view.image.h);
@@ -165,15 +282,13 @@ pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneSc
         }
         let p = psnr(&render.rgb, &view.image.data)?;
         let labels = render.labels();
-        if i == 0 {
-            row.input_psnr = Some(p);
-            row.slots_used = {
-                let mut used: Vec<u32> = labels.iter().copied().filter(|&l| l > 0).collect();
-                used.sort_unstable();
-                used.dedup();
-                used.len()
-            };
-        } else {
+        let input = inputs.contains(&i);
+        let novel = protocol.is_novel(i);
+        if input {
+            input_psnrs.push(p);
+            used.extend(labels.iter().copied().filter(|&l| l > 0));
+        }
+        if novel {
             psnrs.push(p);
             if w >= 11 && h >= 11 {
                 ssims.push(ssim(
@@ -195,30 +310,93 @@ pub fn score_scene(scene: &SceneData, renders: &[FrameRender]) -> Result<SceneSc
             }
             let full = ari(&labels, &gt)?;
             let fga = fg_ari(&labels, &gt)?;
-            if i == 0 {
-                row.ari = Some(full);
-                row.fg_ari = fga;
-            } else {
+            if input {
+                input_aris.push(full);
+                input_fg_aris.extend(fga);
+            }
+            if novel {
                 nv_aris.push(full);
                 nv_fg_aris.extend(fga);
             }
         }
     }
+    used.sort_unstable();
+    used.dedup();
+    row.slots_used = used.len();
     let avg = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    row.input_psnr = avg(&input_psnrs);
+    row.ari = avg(&input_aris);
+    row.fg_ari = avg(&input_fg_aris);
     row.psnr = avg(&psnrs);
     row.ssim = avg(&ssims);
     row.nv_ari = avg(&nv_aris);
     row.nv_fg_ari = avg(&nv_fg_aris);
     row.fg_share = (fg_total > 0).then(|| fg_won as f64 / fg_total as f64);
+    if inputs.len() > 1 {
+        if let Some((seen, one)) = objects_one_slot(scene, renders, inputs) {
+            row.objects_seen_twice = Some(seen);
+            row.objects_one_slot = Some(one);
+        }
+    }
     Ok(row)
 }
 
-/// Evaluates the first `max_scenes` scenes of `data` (all when `None`); `on_scene` sees each
-/// row as it is done (progress, per-scene output).
+/// Of the ground-truth objects at least two input views show, how many, and how many exactly
+/// one slot draws (see [`SceneScores::objects_one_slot`]); None when an input view has no mask
+/// or the masks' ids are local to each view.
+fn objects_one_slot(
+    scene: &SceneData,
+    renders: &[FrameRender],
+    inputs: &[usize],
+) -> Option<(usize, usize)> {
+    use std::collections::{BTreeMap, BTreeSet};
+    if scene.view_local_ids {
+        // Proposal ids name no object across views.
+        return None;
+    }
+    // Per object: the input views that show it, and the slots that draw it in any of them.
+    let mut shown: BTreeMap<u32, usize> = BTreeMap::new();
+    let mut drawn_by: BTreeMap<u32, BTreeSet<u32>> = BTreeMap::new();
+    for &v in inputs {
+        let mask = scene.views[v].mask.as_ref()?;
+        let labels = renders[v].labels();
+        let mut pixels: BTreeMap<u32, BTreeMap<u32, usize>> = BTreeMap::new();
+        for (&g, &l) in mask.iter().zip(&labels) {
+            if g > 0 {
+                *pixels.entry(g as u32).or_default().entry(l).or_default() += 1;
+            }
+        }
+        for (object, by_label) in pixels {
+            let total: usize = by_label.values().sum();
+            if total < MIN_OBJECT_PIXELS {
+                continue;
+            }
+            *shown.entry(object).or_default() += 1;
+            let slots = drawn_by.entry(object).or_default();
+            for (label, count) in by_label {
+                if label > 0 && count as f64 >= SLOT_SHARE * total as f64 {
+                    slots.insert(label);
+                }
+            }
+        }
+    }
+    let twice: Vec<u32> = shown
+        .iter()
+        .filter(|&(_, &views)| views >= 2)
+        .map(|(&o, _)| o)
+        .collect();
+    let one = twice.iter().filter(|o| drawn_by[o].len() == 1).count();
+    Some((twice.len(), one))
+}
+
+/// Evaluates the first `max_scenes` scenes of `data` (all when `None`), encoding and scoring
+/// the views `protocol` names; `on_scene` sees each row as it is done (progress,
+/// per-scene output).
 pub fn evaluate(
     model: &Colf,
     data: &Dataset,
     max_scenes: Option<usize>,
+    protocol: &Protocol,
     opts: &EncodeOptions,
     mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
 ) -> Result<(DatasetScores, Vec<SceneScores>)> {
@@ -226,12 +404,86 @@ pub fn evaluate(
     let mut rows = Vec::with_capacity(n);
     for i in 0..n {
         let scene = data.load(i)?;
-        let (codes, renders) = encode_and_render(model, &scene, opts)
+        let (codes, renders) = encode_and_render(model, &scene, &protocol.inputs, opts)
             .with_context(|| format!("scene {}", scene.name))?;
-        let mut row = score_scene(&scene, &renders)?;
+        let mut row = score_scene(&scene, &renders, protocol)?;
         row.slots_kept = codes.slots.len();
         on_scene(i, &row, &renders);
         rows.push(row);
     }
     Ok((DatasetScores::from_scenes(&rows), rows))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::View;
+
+    /// A 4-pixel view whose mask is `mask`, and a render whose labels are `labels`.
+    fn view_and_render(mask: [u8; 4], labels: [usize; 4]) -> (View, FrameRender) {
+        let frame = crate::encode::default_camera(2, 2);
+        let view = View {
+            path: "v.png".into(),
+            image: crate::image_io::RgbImage32 {
+                w: 2,
+                h: 2,
+                data: vec![0.5; 12],
+            },
+            mask: Some(mask.to_vec()),
+            frame,
+        };
+        let fields = 3;
+        let mut weights = vec![0f32; 4 * fields];
+        for (p, &l) in labels.iter().enumerate() {
+            weights[p * fields + l] = 1.0;
+        }
+        let render = FrameRender {
+            width: 2,
+            height: 2,
+            num_slots: fields - 1,
+            rgb: vec![0.5; 12],
+            weights,
+            ordering: vec![0.0; 4 * fields],
+        };
+        (view, render)
+    }
+
+    #[test]
+    fn an_object_counts_once_when_one_slot_draws_it_in_every_view() {
+        // Object 1 fills pixels 0–1 and object 2 pixels 2–3 of both views. View a: slot 1
+        // draws object 1, slot 2 object 2. View b: slot 1 draws object 1 again, but object 2
+        // is split between slot 1 and slot 2 (two slots draw it).
+        let (a, ra) = view_and_render([1, 1, 2, 2], [1, 1, 2, 2]);
+        let (b, rb) = view_and_render([1, 1, 2, 2], [1, 1, 1, 2]);
+        let scene = SceneData {
+            name: "s".into(),
+            views: vec![a, b],
+            view_local_ids: false,
+        };
+        let renders = [ra, rb];
+        // MIN_OBJECT_PIXELS is 10: a 4-pixel view shows no object.
+        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), Some((0, 0)));
+        let big = |v: &View, r: &FrameRender| {
+            let mut v = v.clone();
+            let mut r = r.clone();
+            v.mask = Some(v.mask.unwrap().repeat(MIN_OBJECT_PIXELS));
+            r.weights = r.weights.repeat(MIN_OBJECT_PIXELS);
+            (v, r)
+        };
+        let (a, ra) = big(&scene.views[0], &renders[0]);
+        let (b, rb) = big(&scene.views[1], &renders[1]);
+        let scene = SceneData {
+            views: vec![a, b],
+            ..scene
+        };
+        let renders = [ra, rb];
+        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), Some((2, 1)));
+        // One input view: no object is seen twice.
+        assert_eq!(objects_one_slot(&scene, &renders, &[0]), Some((0, 0)));
+        let local = SceneData {
+            view_local_ids: true,
+            ..scene
+        };
+        assert_eq!(objects_one_slot(&local, &renders, &[0, 1]), None);
+    }
 }

@@ -1,13 +1,13 @@
-//! `colf-encode`: one image → object slots (a codes file).
+//! `colf-encode`: one image, or several views of one scene → object slots (a codes file).
 
 use clap::Parser;
 
-/// Encode one image into object slots.
+/// Encode one image, or several views of one scene, into object slots.
 #[derive(Parser, Debug)]
 #[command(
     name = "colf-encode",
     version,
-    about = "Encode one image into object slots (a colf codes file)",
+    about = "Encode one image, or several views of one scene, into object slots (a colf codes file)",
     long_about = "Find the objects in one image without labels: the encoder and background-aware \
 slot attention of the model turn IMAGE into K foreground slot latents and one background latent, \
 written as a codes file (safetensors; see colf-edit(1) and the README for its contract).\n\n\
@@ -39,23 +39,34 @@ its training slot count). The bundled models' is 12 slots, 4 tries and 50 refine
 most accurate encoding measured (docs/refinement.md; about 3.4 s of CPU an image, docs/speed.md). \
 --fast is the one-pass encoding (the model's training slot count, about 0.03 s an image), for \
 when speed matters more.\n\n\
+Several images of one scene (IMAGE... with --camera, image i seen by --frame's i-th frame, \
+by default frame i) are encoded into one scene: each view is encoded as above (tries, and the \
+slots its own view does not need dropped), then slots of different views that draw the same \
+object are matched into one — each view's slots are rendered into the views before it, and two \
+slots whose label maps overlap (intersection over union at least 0.3 over those views) are one \
+object; the earlier view's slot stays — so an object seen in several views gets one slot and \
+an object only one view sees keeps its own; the background is the first view's. The kept slots \
+are then refined on all views at once (--refine-rays is per view) and the slots no view needs \
+dropped (--redundant on the mean error over the views). Each slot's source names the image it \
+came from. One image gives exactly the codes it always did.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \
-colf-encode view_000.png --camera transforms.json --fast -o scene.codes"
+colf-encode view_000.png --camera transforms.json --fast -o scene.codes\n  \
+colf-encode view_000.png view_001.png view_002.png --camera transforms.json -o scene.codes"
 )]
 pub struct EncodeArgs {
-    /// Input image, PNG (`-`: stdin).
-    #[arg(value_name = "IMAGE")]
-    pub image: String,
+    /// Input image, PNG (`-`: stdin); several: views of one scene (needs --camera).
+    #[arg(value_name = "IMAGE", required = true, num_args = 1..)]
+    pub images: Vec<String>,
 
-    /// transforms.json holding the camera of IMAGE (sets slot_to_world).
+    /// transforms.json holding the camera of each IMAGE (sets slot_to_world).
     #[arg(long, value_name = "CAMERAS.json")]
     pub camera: Option<String>,
 
-    /// Which frame of --camera is IMAGE's camera.
-    #[arg(long, default_value_t = 0, value_name = "N", requires = "camera")]
-    pub frame: usize,
+    /// Which frames of --camera are the IMAGEs' cameras, one per image (default: 0, 1, ...).
+    #[arg(long, value_name = "N", num_args = 1.., value_delimiter = ',', requires = "camera")]
+    pub frame: Vec<usize>,
 
     /// Number of foreground slots (default: the model's).
     #[arg(long, value_name = "K", value_parser = crate::cli::parse::encode_slots)]
@@ -89,48 +100,108 @@ pub struct EncodeArgs {
 /// Runs `colf-encode`.
 pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
     use crate::camera::Cameras;
+    use crate::cli::UsageError;
+    use crate::encode::multiview::{encode_views, ViewInput};
     use crate::encode::{encode_image, EncodeOptions};
     use anyhow::bail;
-    if args.image == "-" && args.camera.as_deref() == Some("-") {
+    let stdin = args.images.iter().filter(|i| *i == "-").count();
+    if stdin > 1 {
+        return Err(UsageError("more than one IMAGE is stdin (`-`)".into()).into());
+    }
+    if stdin == 1 && args.camera.as_deref() == Some("-") {
         return Err(crate::cli::both_stdin("IMAGE", "--camera"));
     }
+    let several = args.images.len() > 1;
+    if several && args.camera.is_none() {
+        return Err(UsageError(
+            "several IMAGEs need --camera: their cameras place the slots in one world".into(),
+        )
+        .into());
+    }
+    let frames: Vec<usize> = if args.frame.is_empty() {
+        (0..args.images.len()).collect()
+    } else {
+        args.frame.clone()
+    };
+    if frames.len() != args.images.len() {
+        return Err(UsageError(format!(
+            "{} IMAGEs but {} --frame values: give one frame per image",
+            args.images.len(),
+            frames.len()
+        ))
+        .into());
+    }
     let model = crate::cli::model_path::load_model(args.model.as_deref())?;
-    let image = crate::image_io::decode_rgb_for_encoder(
-        &crate::io::read_input(&args.image, true)?,
-        crate::io::display_name(&args.image),
-        model.config().encoder_size as u32,
-        crate::image_io::ENCODE_FULL_RES_PIXELS,
-    )?;
-    let camera = match &args.camera {
+    let images = args
+        .images
+        .iter()
+        .map(|path| {
+            crate::image_io::decode_rgb_for_encoder(
+                &crate::io::read_input(path, true)?,
+                crate::io::display_name(path),
+                model.config().encoder_size as u32,
+                crate::image_io::ENCODE_FULL_RES_PIXELS,
+            )
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let cameras = match &args.camera {
         None => None,
         Some(path) => {
             let cameras = Cameras::read(path)?;
-            let Some(frame) = cameras.frames.get(args.frame) else {
-                bail!(
-                    "{}: --frame {} does not exist (the file has {} frames)",
-                    crate::io::display_name(path),
-                    args.frame,
-                    cameras.frames.len()
-                );
-            };
-            Some(frame.clone())
+            let picked = frames
+                .iter()
+                .map(|&frame| match cameras.frames.get(frame) {
+                    Some(f) => Ok(f.clone()),
+                    None => bail!(
+                        "{}: --frame {frame} does not exist (the file has {} frames)",
+                        crate::io::display_name(path),
+                        cameras.frames.len()
+                    ),
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            Some(picked)
         }
     };
-    let source = args.source.clone().unwrap_or_else(|| {
-        std::path::Path::new(&args.image)
+    let file_name = |path: &str| {
+        std::path::Path::new(path)
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
-            .filter(|_| args.image != "-")
+            .filter(|_| path != "-")
             .unwrap_or_else(|| "stdin".into())
-    });
+    };
+    let source = |i: usize| match &args.source {
+        Some(name) if several => format!("{name}/view{i}"),
+        Some(name) => name.clone(),
+        None => file_name(&args.images[i]),
+    };
     let opts = EncodeOptions {
         prune_mass: args.prune,
-        camera,
-        source,
         ..args
             .fit
             .encode_options(model.config(), args.slots, args.seed)
     };
-    let codes = encode_image(&model, &image, &opts)?;
+    let codes = match cameras {
+        Some(cameras) if several => {
+            let views: Vec<ViewInput> = images
+                .iter()
+                .zip(cameras)
+                .enumerate()
+                .map(|(i, (image, camera))| ViewInput {
+                    image,
+                    camera,
+                    source: source(i),
+                })
+                .collect();
+            encode_views(&model, &views, &opts)?.0
+        }
+        cameras => {
+            let opts = EncodeOptions {
+                camera: cameras.and_then(|c| c.into_iter().next()),
+                source: source(0),
+                ..opts
+            };
+            encode_image(&model, &images[0], &opts)?
+        }
+    };
     codes.write(&args.output)
 }

@@ -46,12 +46,22 @@ colf-encode would: with the model's default encoding (its slots, tries and refin
 view 0, see colf-encode(1); view 0 only, so the novel views stay unseen), or as --slots, \
 --tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps, redundant_mse and, \
 when refining, the refine settings. The JSON object goes to stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
-masks for inspection, and a progress line per scene goes to stderr (-q silences it).",
+masks for inspection, and a progress line per scene goes to stderr (-q silences it).\n\n\
+--input-views 0,1,2 encodes those views of each scene together, as colf-encode does with \
+several images (each view encoded, slots drawing the same object matched into one, all views \
+refined at once): input_psnr, ARI and FG-ARI are then averaged over the input views, PSNR, \
+SSIM and the NV scores over the other views, and the JSON gains input_views, \
+objects_seen_twice (ground-truth objects that at least two input views show, 10 pixels or \
+more in each) and one_slot_share (the share of those that exactly one slot draws: the same \
+slot, and no other, wins at least a quarter of the object's pixels in every input view that \
+shows it). --novel-views 3 scores only view 3 as a novel view (recorded as novel_views), so \
+one and three input views can be compared on the same held-out view.",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
 colf-eval masks renders/frame_0000.mask.png data/scene_00000/view_001.mask.png\n  \
 colf-eval images a.png b.png | jq .psnr\n  \
 colf-eval --data data/test --scenes 100 > metrics.json\n  \
-colf-eval --data data/test --fast > one-pass.json",
+colf-eval --data data/test --fast > one-pass.json\n  \
+colf-eval --data data/test --input-views 0,1,2 --novel-views 3 > three-views.json",
     args_conflicts_with_subcommands = true,
     arg_required_else_help = true
 )]
@@ -89,6 +99,17 @@ pub struct EvalArgs {
 
     #[command(flatten)]
     pub fit: crate::cli::FitArgs,
+
+    /// Encode these views of each scene together (comma-separated indices, as colf-encode
+    /// does with several images) and score the other views as novel views.
+    #[arg(long, value_name = "V,...", value_delimiter = ',', default_values_t = [0usize],
+          requires = "data")]
+    pub input_views: Vec<usize>,
+
+    /// Score only these views as novel views (comma-separated; default: every view that is
+    /// not an input), e.g. the same held-out view for one and for three input views.
+    #[arg(long, value_name = "V,...", value_delimiter = ',', requires = "data")]
+    pub novel_views: Option<Vec<usize>>,
 
     /// Add the per-scene rows to the JSON.
     #[arg(long, requires = "data")]
@@ -207,6 +228,17 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     if dataset.is_empty() {
         bail!("{}: no scenes found", data.display());
     }
+    for (i, v) in args.input_views.iter().enumerate() {
+        if args.input_views[..i].contains(v) {
+            return Err(
+                crate::cli::UsageError(format!("--input-views: view {v} is named twice")).into(),
+            );
+        }
+    }
+    let protocol = crate::evaluate::Protocol {
+        inputs: args.input_views.clone(),
+        novel: args.novel_views.clone(),
+    };
     let model = crate::cli::model_path::load_model(args.model.as_deref())?;
     if let Some(dir) = &args.renders {
         std::fs::create_dir_all(dir)
@@ -224,6 +256,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             &model,
             &dataset,
             args.scenes,
+            &protocol,
             &options,
             |i, row, renders| {
                 // The first run's renders: what --renders shows.
@@ -269,6 +302,12 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     doc["tries"] = serde_json::json!(encoding.tries);
     doc["refine_steps"] = serde_json::json!(encoding.refine);
     doc["redundant_mse"] = serde_json::json!(options.redundant_mse);
+    if args.input_views != [0] {
+        doc["input_views"] = serde_json::json!(args.input_views);
+    }
+    if let Some(novel) = &args.novel_views {
+        doc["novel_views"] = serde_json::json!(novel);
+    }
     if options.refine.steps > 0 {
         doc["refine"] = serde_json::to_value(options.refine)?;
     }

@@ -10,9 +10,13 @@
 //!    input view (`refine.steps`, none by default).
 //! 4. [`redundant::drop_redundant_slots`]: the slots the view does not need dropped.
 //!
+//! Several views of one scene: [`multiview::encode_views`] runs steps 1–2 per view, matches
+//! the views' slots into one per object, then steps 3–4 on all views at once.
+//!
 //! A model file may carry its own default encoding (its config's `inference`); the CLIs read
 //! it and fill [`EncodeOptions`].
 
+pub mod multiview;
 pub mod redundant;
 pub mod refine;
 pub mod view;
@@ -143,7 +147,7 @@ pub fn encode_image_report(
     };
     // 4. After refinement: dropping slots before it and refining the rest scored worse on the
     // held-out scenes (`docs/refinement.md`); after it, the survivors already draw the objects.
-    let slots = drop_redundant_slots(model, slots, &background, &view, opts.redundant_mse)?;
+    let slots = drop_redundant_slots(model, slots, &background, &[&view], opts.redundant_mse)?;
     Ok((
         Codes {
             slots,
@@ -294,18 +298,18 @@ mod tests {
         };
         let base = error(&all, &background);
         // No budget: every slot stays.
-        let kept = drop_redundant_slots(&model, all.clone(), &background, &view, 0.0).unwrap();
+        let kept = drop_redundant_slots(&model, all.clone(), &background, &[&view], 0.0).unwrap();
         assert_eq!(kept, all);
         // Any budget: what is left renders the image within it, in the original order.
         for tolerance in [1e-5, 1e-3, 1e-2] {
-            let kept =
-                drop_redundant_slots(&model, all.clone(), &background, &view, tolerance).unwrap();
+            let kept = drop_redundant_slots(&model, all.clone(), &background, &[&view], tolerance)
+                .unwrap();
             assert!(error(&kept, &background) <= base + tolerance, "{tolerance}");
             let mut rest = all.iter();
             assert!(kept.iter().all(|k| rest.any(|s| s == k)), "order kept");
         }
         // A budget as large as any error: no slot is needed.
-        let kept = drop_redundant_slots(&model, all, &background, &view, 1.0).unwrap();
+        let kept = drop_redundant_slots(&model, all, &background, &[&view], 1.0).unwrap();
         assert!(kept.is_empty());
     }
 

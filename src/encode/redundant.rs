@@ -1,4 +1,4 @@
-//! The last step of an encoding: drop the slots the input view does not need.
+//! The last step of an encoding: drop the slots the input views do not need.
 //!
 //! Given more slots than objects (the default encoding uses 12), slot attention sometimes gives
 //! one object two slots that draw it alike; the one that loses the compositor's competition
@@ -12,22 +12,21 @@ use crate::model::Colf;
 use crate::render::fast::FastRenderer;
 use anyhow::Result;
 
-/// Drops the slots `view` does not need: in order of attention mass (smallest first), a slot
-/// is removed when the slots left still render the view with a mean squared error at most
-/// `tolerance` above that of all `slots`. The bound is on the total, so many small removals
-/// cannot add up to a visible loss.
+/// Drops the slots `views` do not need: in order of attention mass (smallest first), a slot
+/// is removed when the slots left still render the views with a mean squared error (the mean
+/// of the views') at most `tolerance` above that of all `slots`. The bound is on the total, so
+/// many small removals cannot add up to a visible loss.
 pub fn drop_redundant_slots(
     model: &Colf,
     slots: Vec<Slot>,
     background: &[f32],
-    view: &InputView,
+    views: &[&InputView],
     tolerance: f64,
 ) -> Result<Vec<Slot>> {
-    if tolerance <= 0.0 || slots.is_empty() {
+    if tolerance <= 0.0 || slots.is_empty() || views.is_empty() {
         return Ok(slots);
     }
     let (latents, frames) = latents_and_frames(&slots);
-    let pixels = &view.compared;
     // Light fields: the hypernetworks run once, and a subset is rendered by leaving the other
     // slots out of every ray's composition (the fast renderer's `active` mask: the same as
     // deleting them). The volumetric baseline has no such mask and renders each subset anew.
@@ -37,7 +36,7 @@ pub fn drop_redundant_slots(
         let prepared = model.prepare(&latents, background)?;
         Some(FastRenderer::new(model, &prepared, &frames)?)
     };
-    let error_of = |keep: &[bool]| -> Result<f64> {
+    let error_on = |view: &InputView, keep: &[bool]| -> Result<f64> {
         let Some(renderer) = &renderer else {
             let (latents, frames): (Vec<_>, Vec<_>) = latents
                 .iter()
@@ -48,10 +47,18 @@ pub fn drop_redundant_slots(
                 .unzip();
             return view.mse(model, &latents, background, &frames);
         };
+        let pixels = &view.compared;
         let fields: Vec<bool> = std::iter::once(true).chain(keep.iter().copied()).collect();
         let active = fields.repeat(pixels.origins.len());
         let out = renderer.render(&pixels.origins, &pixels.dirs, None, Some(&active))?;
         Ok(pixels.mse(&out.rgb))
+    };
+    let error_of = |keep: &[bool]| -> Result<f64> {
+        let mut total = 0.0;
+        for view in views {
+            total += error_on(view, keep)?;
+        }
+        Ok(total / views.len() as f64)
     };
     let mut keep = vec![true; slots.len()];
     let budget = error_of(&keep)? + tolerance;

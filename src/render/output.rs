@@ -19,6 +19,23 @@ pub struct FrameRender {
     pub ordering: Vec<f32>,
 }
 
+/// Each pixel's field with the largest compositor weight (`weights` holds `fields` per pixel:
+/// 0 the background, k + 1 slot k; ties go to the lower field).
+pub fn argmax_labels(weights: &[f32], fields: usize) -> Vec<u32> {
+    weights
+        .chunks_exact(fields)
+        .map(|w| {
+            let mut best = 0;
+            for (i, &v) in w.iter().enumerate().skip(1) {
+                if v > w[best] {
+                    best = i;
+                }
+            }
+            best as u32
+        })
+        .collect()
+}
+
 impl FrameRender {
     fn pixels(&self) -> usize {
         self.width as usize * self.height as usize
@@ -45,19 +62,7 @@ impl FrameRender {
     /// Segmentation labels: 0 = background, k + 1 = slot k, by argmax of the compositor
     /// weights (ties go to the lower index, so to the background first).
     pub fn labels(&self) -> Vec<u32> {
-        let per = 1 + self.num_slots;
-        self.weights
-            .chunks_exact(per)
-            .map(|w| {
-                let mut best = 0;
-                for (i, &v) in w.iter().enumerate().skip(1) {
-                    if v > w[best] {
-                        best = i;
-                    }
-                }
-                best as u32
-            })
-            .collect()
+        argmax_labels(&self.weights, 1 + self.num_slots)
     }
 
     /// The mask PNG: 8-bit grey labels (0 = background, k + 1 = slot k) while there are fewer

@@ -684,6 +684,7 @@ impl Trainer {
             &self.colf,
             data,
             Some(self.opts.eval_scenes),
+            &crate::evaluate::Protocol::default(),
             &crate::encode::EncodeOptions::one_pass(self.num_slots),
             |_, _, _| {},
         )?;

@@ -1,0 +1,326 @@
+//! Several views in, one scene out: encoding a scene from images taken by several cameras.
+//!
+//! Each view is encoded on its own ([`super::best_of_tries`], then the slots its own view does
+//! not need dropped), so every view proposes slots, in world frames, for the objects it sees.
+//! An object seen by two views then has two slots; keeping both would draw it twice and break
+//! every edit (moving one copy leaves the other). So the views' slots are **matched**: view by
+//! view, each slot set is rendered into every view taken so far, and two slots that cover the
+//! same pixels there (intersection over union of their label maps, summed over those views, at
+//! least [`MATCH_IOU`]) are one object; the slot already kept stays, the newcomer goes. A slot
+//! no earlier slot matches is an object only this view saw, and joins. The background is the
+//! first view's. Then the default encoding's refinement runs on all views at once (its rays
+//! per step are per view: V views, V times the pixels a step), and the slots no view needs are
+//! dropped (the redundancy budget on the mean error over the views).
+//!
+//! Matching by what the slots draw, not by where their frames sit: a slot's frame origin is
+//! only a guess of the object's position along its ray (`model::frames`), while its rendered
+//! pixels in a shared view are what an edit would move.
+
+use super::redundant::drop_redundant_slots;
+use super::refine::{self, RefineReport};
+use super::view::InputView;
+use super::{best_of_tries, latents_and_frames, EncodeOptions};
+use crate::camera::Frame;
+use crate::codes::{Codes, Slot};
+use crate::image_io::RgbImage32;
+use crate::model::Colf;
+use crate::render::fast::FastRenderer;
+use anyhow::{bail, Result};
+
+/// Two slots from different views are one object when their label maps overlap this much
+/// (intersection over union over the views compared).
+pub const MATCH_IOU: f64 = 0.3;
+
+/// One image of the scene, its camera, and the name its slots' sources carry.
+pub struct ViewInput<'a> {
+    pub image: &'a RgbImage32,
+    pub camera: Frame,
+    pub source: String,
+}
+
+/// What a multi-view encoding did besides its codes.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MultiViewReport {
+    /// Slots each view proposed (after its own redundancy drop), in view order.
+    pub proposed: Vec<usize>,
+    /// Slots of later views found to draw an object an earlier view's slot already drew.
+    pub matched: usize,
+    /// The joint refinement, if it ran.
+    pub refine: Option<RefineReport>,
+}
+
+/// Encodes one scene from `inputs` (one or more views with their cameras). One view is
+/// exactly [`super::encode_image_report`] with that camera and source (same bytes); `opts`'
+/// own `camera` and `source` are not read.
+pub fn encode_views(
+    model: &Colf,
+    inputs: &[ViewInput],
+    opts: &EncodeOptions,
+) -> Result<(Codes, MultiViewReport)> {
+    opts.check()?;
+    let single = |input: &ViewInput| EncodeOptions {
+        camera: Some(input.camera.clone()),
+        source: input.source.clone(),
+        ..opts.clone()
+    };
+    match inputs {
+        [] => bail!("no view to encode"),
+        [input] => {
+            let (codes, refine) = super::encode_image_report(model, input.image, &single(input))?;
+            let report = MultiViewReport {
+                proposed: vec![codes.slots.len()],
+                matched: 0,
+                refine,
+            };
+            return Ok((codes, report));
+        }
+        _ => {}
+    }
+    let views: Vec<InputView> = inputs
+        .iter()
+        .map(|input| InputView::new(&input.camera, input.image))
+        .collect();
+    let mut report = MultiViewReport::default();
+    // 1. Each view's own encoding: the best of its tries, less the slots it does not need.
+    let mut proposals = Vec::with_capacity(inputs.len());
+    for (input, view) in inputs.iter().zip(&views) {
+        let (slots, background) = best_of_tries(model, view, &single(input))?;
+        let slots = drop_redundant_slots(model, slots, &background, &[view], opts.redundant_mse)?;
+        report.proposed.push(slots.len());
+        proposals.push((slots, background));
+    }
+    // 2. One slot per object: later views' slots matched against those kept so far.
+    let mut proposals = proposals.into_iter();
+    let (mut slots, mut background) = proposals.next().expect("two views or more");
+    for (i, (newcomers, newcomers_background)) in proposals.enumerate() {
+        let seen = &views[..i + 2];
+        let matched = match_slots(
+            model,
+            (&slots, &background),
+            (&newcomers, &newcomers_background),
+            seen,
+        )?;
+        report.matched += matched.iter().filter(|m| m.is_some()).count();
+        slots.extend(
+            newcomers
+                .into_iter()
+                .zip(matched)
+                .filter(|(_, m)| m.is_none())
+                .map(|(s, _)| s),
+        );
+    }
+    // 3. All views at once: refinement, then the slots no view needs dropped.
+    let all: Vec<&InputView> = views.iter().collect();
+    if opts.refine.steps > 0 {
+        // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
+        let refine_options = refine::RefineOptions {
+            rays: opts.refine.rays.saturating_mul(views.len()),
+            ..opts.refine
+        };
+        report.refine = Some(refine::refine_slots(
+            model,
+            &mut slots,
+            &mut background,
+            &all,
+            &refine_options,
+        )?);
+    }
+    let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse)?;
+    let codes = Codes {
+        slots,
+        background,
+        model: model.identity()?,
+    };
+    Ok((codes, report))
+}
+
+/// For each of `newcomers`' slots, the slot of `kept` that draws the same object in `views`,
+/// if any: pairs by decreasing intersection over union of their label maps (summed over the
+/// views), each slot in at most one pair, none under [`MATCH_IOU`].
+pub fn match_slots(
+    model: &Colf,
+    kept: (&[Slot], &[f32]),
+    newcomers: (&[Slot], &[f32]),
+    views: &[InputView],
+) -> Result<Vec<Option<usize>>> {
+    let (a, b) = (kept.0.len(), newcomers.0.len());
+    let mut intersection = vec![0usize; a * b];
+    let (mut area_a, mut area_b) = (vec![0usize; a], vec![0usize; b]);
+    for view in views {
+        let la = labels(model, kept.0, kept.1, view)?;
+        let lb = labels(model, newcomers.0, newcomers.1, view)?;
+        for (&x, &y) in la.iter().zip(&lb) {
+            if x > 0 {
+                area_a[x as usize - 1] += 1;
+            }
+            if y > 0 {
+                area_b[y as usize - 1] += 1;
+            }
+            if x > 0 && y > 0 {
+                intersection[(x as usize - 1) * b + y as usize - 1] += 1;
+            }
+        }
+    }
+    let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
+    for i in 0..a {
+        for j in 0..b {
+            let both = intersection[i * b + j];
+            let union = area_a[i] + area_b[j] - both;
+            if both > 0 {
+                let iou = both as f64 / union as f64;
+                if iou >= MATCH_IOU {
+                    pairs.push((iou, i, j));
+                }
+            }
+        }
+    }
+    // Best overlaps first; ties by index, so the matching is deterministic.
+    pairs.sort_by(|p, q| q.0.total_cmp(&p.0).then((p.1, p.2).cmp(&(q.1, q.2))));
+    let mut taken = vec![false; a];
+    let mut matched = vec![None; b];
+    for (_, i, j) in pairs {
+        if !taken[i] && matched[j].is_none() {
+            taken[i] = true;
+            matched[j] = Some(i);
+        }
+    }
+    Ok(matched)
+}
+
+/// Which field draws each of `view`'s compared pixels when `slots` and `background` render it:
+/// 0 the background, k + 1 slot k (the compositor's largest weight).
+pub fn labels(
+    model: &Colf,
+    slots: &[Slot],
+    background: &[f32],
+    view: &InputView,
+) -> Result<Vec<u32>> {
+    let (latents, frames) = latents_and_frames(slots);
+    let prepared = model.prepare(&latents, background)?;
+    let pixels = &view.compared;
+    let out = if model.config().is_volumetric() {
+        model.render_rays(&prepared, &frames, &pixels.origins, &pixels.dirs)?
+    } else {
+        FastRenderer::new(model, &prepared, &frames)?.render(
+            &pixels.origins,
+            &pixels.dirs,
+            None,
+            None,
+        )?
+    };
+    Ok(crate::render::output::argmax_labels(
+        &out.weights,
+        out.fields,
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::look_at;
+    use crate::model::Config;
+    use glam::DVec3;
+
+    fn image(size: u32, phase: u32) -> RgbImage32 {
+        let data = (0..3 * size * size)
+            .map(|i| (((i + phase) * 37 % 101) as f32) / 100.0)
+            .collect();
+        RgbImage32 {
+            w: size,
+            h: size,
+            data,
+        }
+    }
+
+    fn camera(size: u32, x: f64) -> Frame {
+        Frame {
+            file_path: None,
+            intrinsics: crate::camera::Intrinsics::from_fov(size, size, 49.13),
+            camera_to_world: look_at(DVec3::new(x, -8.0, 9.0), DVec3::ZERO, DVec3::Z).unwrap(),
+        }
+    }
+
+    fn options() -> EncodeOptions {
+        EncodeOptions {
+            source: "ignored".into(),
+            ..EncodeOptions::one_pass(4)
+        }
+    }
+
+    #[test]
+    fn one_view_is_the_single_image_encoding() {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let img = image(16, 0);
+        let input = ViewInput {
+            image: &img,
+            camera: camera(16, 0.0),
+            source: "a.png".into(),
+        };
+        let (codes, report) = encode_views(&model, &[input], &options()).unwrap();
+        let single = super::super::encode_image(
+            &model,
+            &img,
+            &EncodeOptions {
+                camera: Some(camera(16, 0.0)),
+                source: "a.png".into(),
+                ..options()
+            },
+        )
+        .unwrap();
+        assert_eq!(codes, single);
+        assert_eq!(report.proposed, vec![codes.slots.len()]);
+        assert!(encode_views(&model, &[], &options()).is_err());
+    }
+
+    #[test]
+    fn slots_that_draw_the_same_pixels_are_matched_once() {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let img = image(16, 0);
+        let cam = camera(16, 0.0);
+        let view = InputView::new(&cam, &img);
+        let (slots, background) = super::super::encode_once(&model, &view, &options(), 3).unwrap();
+        // A set against itself: every slot that draws a pixel is its own match, and only its.
+        let labels = labels(&model, &slots, &background, &view).unwrap();
+        let matched = match_slots(
+            &model,
+            (&slots, &background),
+            (&slots, &background),
+            std::slice::from_ref(&view),
+        )
+        .unwrap();
+        for (k, m) in matched.iter().enumerate() {
+            let draws = labels.contains(&(k as u32 + 1));
+            assert_eq!(*m, draws.then_some(k), "slot {k}");
+        }
+        assert!(matched.iter().any(|m| m.is_some()));
+        // Against no slots: nothing matches.
+        let none = match_slots(&model, (&[], &background), (&slots, &background), &[view]).unwrap();
+        assert!(none.iter().all(|m| m.is_none()));
+    }
+
+    #[test]
+    fn the_same_view_twice_adds_no_slot_that_draws() {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let img = image(16, 0);
+        let input = |source: &str| ViewInput {
+            image: &img,
+            camera: camera(16, 0.0),
+            source: source.into(),
+        };
+        let (codes, report) = encode_views(&model, &[input("a"), input("b")], &options()).unwrap();
+        assert_eq!(report.proposed.len(), 2);
+        // Every slot of the second view that draws a pixel found its twin.
+        let cam = camera(16, 0.0);
+        let view = InputView::new(&cam, &img);
+        let drawn: Vec<u32> = labels(&model, &codes.slots, &codes.background, &view).unwrap();
+        for (k, slot) in codes.slots.iter().enumerate() {
+            if slot.source.starts_with("b#") {
+                assert!(!drawn.contains(&(k as u32 + 1)), "{} draws", slot.source);
+            }
+        }
+        assert!(report.matched > 0);
+        // Same inputs, same bytes.
+        let (again, _) = encode_views(&model, &[input("a"), input("b")], &options()).unwrap();
+        assert_eq!(codes, again);
+    }
+}
