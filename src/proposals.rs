@@ -12,7 +12,9 @@
 //! 2. **Candidates**: pixels farther from their surface than `threshold` in some channel. A
 //!    textured surface (its trimmed fit's residuals spread widely) has a wider tolerance,
 //!    `texture` × that spread: pixels between `threshold` and it are [`UNSURE`], the grain of
-//!    the wood or a dim object of its colour.
+//!    the wood or a dim object of its colour — unless their hue (chromaticity) is farther from
+//!    the surface's than `hue_texture` × the surface's own hue spread: a blue chair on brown
+//!    parquet or on grey stripes.
 //! 3. **Lighting**: a candidate that is a uniformly darkened or brightened copy of the
 //!    background (equal ratios in R, G and B, below `shadow_ratio` or above its inverse) is a
 //!    shadow or a light's bright spot the polynomial did not follow, not an object, and is
@@ -74,6 +76,10 @@ pub struct ProposalParams {
     /// A surface's tolerance is at least this many times its spread (the 75th percentile of
     /// its pixels' residuals), so textured floors do not become candidates.
     pub texture: f32,
+    /// …but a pixel whose chromaticity is farther from its surface's than this many times the
+    /// surface's own chromaticity spread (and `chroma_edge`) is a candidate all the same: an
+    /// object of another hue on a grain of one hue.
+    pub hue_texture: f32,
 }
 
 impl Default for ProposalParams {
@@ -92,6 +98,7 @@ impl Default for ProposalParams {
             layer_area: 0.05,
             layer_degree: 2,
             texture: 2.5,
+            hue_texture: 4.0,
         }
     }
 }
@@ -104,7 +111,11 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
     if n == 0 {
         return Vec::new();
     }
-    let (background, tolerance) = background_layers(image, params);
+    let Background {
+        colour: background,
+        tolerance,
+        chroma_tolerance,
+    } = background_layers(image, params);
     let data = &image.data;
     let mut object = vec![false; n];
     let mut ids = vec![0u8; n];
@@ -117,7 +128,9 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         if distance <= params.threshold {
             continue;
         }
-        if distance <= tolerance[p] {
+        let other_hue =
+            chroma_distance(image, p, &background).is_some_and(|d| d > chroma_tolerance[p]);
+        if distance <= tolerance[p] && !other_hue {
             // Within the grain of a textured surface: maybe an object of its colour, maybe
             // the surface; left to the colour loss.
             ids[p] = UNSURE;
@@ -190,7 +203,7 @@ fn same_chroma(image: &RgbImage32, p: usize, q: usize, params: &ProposalParams) 
 /// (else the search stops), and the floor is refitted without them. A surface's tolerance is
 /// `params.threshold`, or `params.texture` times its own spread where that is larger, so a
 /// wooden or tiled floor's grain is not taken for objects.
-fn background_layers(image: &RgbImage32, params: &ProposalParams) -> (Vec<f32>, Vec<f32>) {
+fn background_layers(image: &RgbImage32, params: &ProposalParams) -> Background {
     let n = (image.w * image.h) as usize;
     let (w, h) = (image.w as usize, image.h as usize);
     let tolerance_of = |surface: &Surface| params.threshold.max(params.texture * surface.spread);
@@ -205,10 +218,12 @@ fn background_layers(image: &RgbImage32, params: &ProposalParams) -> (Vec<f32>, 
     };
     let layer_area = ((params.layer_area as f64 * n as f64).ceil() as usize).max(1);
     let mut claimed = vec![false; n];
+    // Which surface each pixel's background is: 0 the floor, k the k-th layer.
+    let mut surface_of = vec![0usize; n];
     let floor = fit_surface(image, &vec![true; n], params.degree, params.passes);
     let mut tolerance = vec![tolerance_of(&floor); n];
     let mut background = floor.colour;
-    for _ in 0..params.layers {
+    for layer in 1..=params.layers {
         let candidate: Vec<bool> = (0..n)
             .map(|p| !claimed[p] && distance(p, &background) > params.threshold)
             .collect();
@@ -260,6 +275,7 @@ fn background_layers(image: &RgbImage32, params: &ProposalParams) -> (Vec<f32>, 
         };
         for &p in &explained {
             claimed[p] = true;
+            surface_of[p] = layer;
             background[3 * p..3 * p + 3].copy_from_slice(&surface.colour[3 * p..3 * p + 3]);
             tolerance[p] = surface_tolerance;
         }
@@ -272,7 +288,50 @@ fn background_layers(image: &RgbImage32, params: &ProposalParams) -> (Vec<f32>, 
             tolerance[p] = floor_tolerance;
         }
     }
-    (background, tolerance)
+    // Each surface's chromaticity spread over the pixels it explains: a grain of one hue (wood,
+    // grey stripes) leaves it small, so an object of another hue stands out from the grain even
+    // where its brightness does not.
+    let surfaces = surface_of.iter().max().map_or(0, |&k| k + 1);
+    let mut chroma_tolerance = vec![f32::INFINITY; surfaces];
+    for (k, slot) in chroma_tolerance.iter_mut().enumerate() {
+        let mut spread: Vec<f32> = (0..n)
+            .filter(|&p| surface_of[p] == k && distance(p, &background) <= tolerance[p])
+            .filter_map(|p| chroma_distance(image, p, &background))
+            .collect();
+        if spread.is_empty() {
+            continue;
+        }
+        let at = (spread.len() * 3 / 4).min(spread.len() - 1);
+        let (_, q75, _) = spread.select_nth_unstable_by(at, f32::total_cmp);
+        *slot = params.chroma_edge.max(params.hue_texture * *q75);
+    }
+    Background {
+        colour: background,
+        tolerance,
+        chroma_tolerance: surface_of.iter().map(|&k| chroma_tolerance[k]).collect(),
+    }
+}
+
+/// The background under every pixel: see [`background_layers`].
+struct Background {
+    /// RGB, row-major.
+    colour: Vec<f32>,
+    /// How far (largest channel difference) a pixel may stray from it and be its surface's.
+    tolerance: Vec<f32>,
+    /// How far a pixel's chromaticity may stray from it and be its surface's grain.
+    chroma_tolerance: Vec<f32>,
+}
+
+/// The largest channel difference between the chromaticities of pixel `p` and of `colour` at
+/// `p`; None where either is too dark for its chromaticity to mean anything.
+fn chroma_distance(image: &RgbImage32, p: usize, colour: &[f32]) -> Option<f32> {
+    let chroma = |rgb: &[f32]| {
+        let sum = rgb[0] + rgb[1] + rgb[2];
+        (sum >= 0.3).then(|| [rgb[0] / sum, rgb[1] / sum, rgb[2] / sum])
+    };
+    let a = chroma(&image.data[3 * p..3 * p + 3])?;
+    let b = chroma(&colour[3 * p..3 * p + 3])?;
+    Some((0..3).map(|c| (a[c] - b[c]).abs()).fold(0f32, f32::max))
 }
 
 /// How a view's proposals compare with its ground-truth mask (only to report their quality:
@@ -668,11 +727,16 @@ mod tests {
     /// drops from row `WALL` at the view's sides to row 16 in the middle, a brown floor (a wood
     /// grain of up to ±`grain` in 2-pixel stripes) and a blue chair-sized block on it.
     fn room(grain: f32) -> RgbImage32 {
+        room_with(grain, [0.1, 0.2, 0.8])
+    }
+
+    /// [`room`] with a block of colour `block`.
+    fn room_with(grain: f32, block: [f32; 3]) -> RgbImage32 {
         image(48, 48, |x, y| {
             if y < 16 - x.abs_diff(24) / 3 {
                 [0.7 - 0.004 * x as f32; 3]
             } else if (20..28).contains(&x) && (26..36).contains(&y) {
-                [0.1, 0.2, 0.8]
+                block
             } else {
                 let g = grain * [1.0, 0.3, -0.3, -1.0][(x / 2 + y) % 4];
                 [0.5 + g, 0.3 + 0.3 * g, 0.2]
@@ -723,6 +787,19 @@ mod tests {
             .filter(|&(p, &id)| p >= WALL * 48 && is_instance(id) && img.data[3 * p + 2] < 0.5)
             .count();
         assert!(grain_instances > 0);
+    }
+
+    #[test]
+    fn a_dim_block_of_another_hue_stands_out_from_the_grain() {
+        // Within the grain's brightness tolerance, but mauve on brown wood.
+        let img = room_with(0.1, [0.33, 0.3, 0.45]);
+        let ids = propose(&img, &ProposalParams::default());
+        assert_eq!(ids[30 * 48 + 23], 1, "the block is the one instance");
+        let hue_blind = ProposalParams {
+            hue_texture: f32::INFINITY,
+            ..ProposalParams::default()
+        };
+        assert_eq!(propose(&img, &hue_blind)[30 * 48 + 23], UNSURE);
     }
 
     #[test]

@@ -46,8 +46,8 @@ object are matched into one — each view's slots are rendered into the views be
 slots whose label maps overlap (intersection over union at least 0.3 over those views) are one \
 object; the earlier view's slot stays — so an object seen in several views gets one slot and \
 an object only one view sees keeps its own; the background is the first view's. The kept slots \
-are then refined on all views at once (--refine-rays is per view) and the slots no view needs \
-dropped (--redundant on the mean error over the views). Each slot's source names the image it \
+are then refined on all views at once (--refine-rays is per view; unless --refine says \
+otherwise, twice the model's default steps) and the slots no view needs dropped (--redundant on the mean error over the views). Each slot's source names the image it \
 came from. One image gives exactly the codes it always did.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
@@ -176,9 +176,12 @@ pub fn run(args: &EncodeArgs) -> anyhow::Result<()> {
     };
     let opts = EncodeOptions {
         prune_mass: args.prune,
-        ..args
-            .fit
-            .encode_options(model.config(), args.slots, args.seed)
+        ..args.fit.encode_options_for_views(
+            model.config(),
+            args.slots,
+            args.seed,
+            args.images.len(),
+        )
     };
     let codes = match cameras {
         Some(cameras) if several => {

@@ -49,7 +49,7 @@ when refining, the refine settings. The JSON object goes to stdout; --per-scene 
 masks for inspection, and a progress line per scene goes to stderr (-q silences it).\n\n\
 --input-views 0,1,2 encodes those views of each scene together, as colf-encode does with \
 several images (each view encoded, slots drawing the same object matched into one, all views \
-refined at once): input_psnr, ARI and FG-ARI are then averaged over the input views, PSNR, \
+refined at once, by default with twice the model's refinement steps): input_psnr, ARI and FG-ARI are then averaged over the input views, PSNR, \
 SSIM and the NV scores over the other views, and the JSON gains input_views, \
 objects_seen_twice (ground-truth objects that at least two input views show, 10 pixels or \
 more in each) and one_slot_share (the share of those that exactly one slot draws: the same \
@@ -251,7 +251,12 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let mut all_rows = Vec::new();
     for run in 0..args.seeds as u64 {
         let seed = args.seed.wrapping_add(run * SEED_STRIDE);
-        let options = args.fit.encode_options(model.config(), args.slots, seed);
+        let options = args.fit.encode_options_for_views(
+            model.config(),
+            args.slots,
+            seed,
+            args.input_views.len(),
+        );
         let (scores, rows) = crate::evaluate::evaluate(
             &model,
             &dataset,
@@ -289,10 +294,13 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         runs.push((seed, scores));
         all_rows.extend(rows);
     }
+    let views = args.input_views.len();
     let options = args
         .fit
-        .encode_options(model.config(), args.slots, args.seed);
-    let encoding = args.fit.encoding(model.config(), args.slots);
+        .encode_options_for_views(model.config(), args.slots, args.seed, views);
+    let encoding = args
+        .fit
+        .encoding_for_views(model.config(), args.slots, views);
     let scores = crate::evaluate::DatasetScores::from_scenes(&all_rows);
     let rows = all_rows;
     let mut doc = serde_json::to_value(&scores)?;

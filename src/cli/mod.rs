@@ -283,6 +283,22 @@ impl FitArgs {
         }
     }
 
+    /// [`FitArgs::encoding`] for an encoding of `views` views of one scene: unless --refine
+    /// says otherwise, several views refine [`crate::encode::multiview::MULTI_VIEW_REFINE_FACTOR`]
+    /// times the model's steps.
+    pub fn encoding_for_views(
+        &self,
+        model_config: &crate::model::Config,
+        slots: Option<usize>,
+        views: usize,
+    ) -> crate::model::config::InferenceConfig {
+        let mut encoding = self.encoding(model_config, slots);
+        if views > 1 && self.refine.is_none() {
+            encoding.refine *= crate::encode::multiview::MULTI_VIEW_REFINE_FACTOR;
+        }
+        encoding
+    }
+
     /// The error budget for dropping redundant slots: --redundant, else none for `--fast` (one
     /// pass, nothing more), else `DEFAULT_REDUNDANT_MSE`.
     pub fn redundant_mse(&self) -> f64 {
@@ -302,7 +318,19 @@ impl FitArgs {
         slots: Option<usize>,
         seed: u64,
     ) -> crate::encode::EncodeOptions {
-        let encoding = self.encoding(model_config, slots);
+        self.encode_options_for_views(model_config, slots, seed, 1)
+    }
+
+    /// [`FitArgs::encode_options`] for an encoding of `views` views of one scene (see
+    /// [`FitArgs::encoding_for_views`]).
+    pub fn encode_options_for_views(
+        &self,
+        model_config: &crate::model::Config,
+        slots: Option<usize>,
+        seed: u64,
+        views: usize,
+    ) -> crate::encode::EncodeOptions {
+        let encoding = self.encoding_for_views(model_config, slots, views);
         crate::encode::EncodeOptions {
             num_slots: encoding.slots,
             seed,
@@ -329,6 +357,7 @@ impl FitArgs {
 #[cfg(test)]
 mod tests {
     use super::encode::EncodeArgs;
+    use crate::encode::multiview::MULTI_VIEW_REFINE_FACTOR;
     use crate::model::config::InferenceConfig;
     use crate::model::Config;
     use clap::Parser;
@@ -336,6 +365,27 @@ mod tests {
     fn encoding(cfg: &Config, flags: &[&str]) -> InferenceConfig {
         let args = EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
         args.fit.encoding(cfg, args.slots)
+    }
+
+    #[test]
+    fn several_views_refine_longer_unless_told() {
+        let tuned = Config {
+            inference: Some(InferenceConfig {
+                slots: 12,
+                tries: 4,
+                refine: 50,
+            }),
+            ..Config::small()
+        };
+        let for_views = |flags: &[&str], views: usize| {
+            let args =
+                EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
+            args.fit.encoding_for_views(&tuned, args.slots, views).refine
+        };
+        assert_eq!(for_views(&[], 1), 50);
+        assert_eq!(for_views(&[], 3), 50 * MULTI_VIEW_REFINE_FACTOR);
+        assert_eq!(for_views(&["--refine", "30"], 3), 30);
+        assert_eq!(for_views(&["--fast"], 3), 0);
     }
 
     #[test]
