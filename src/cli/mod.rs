@@ -380,7 +380,9 @@ mod tests {
         let for_views = |flags: &[&str], views: usize| {
             let args =
                 EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
-            args.fit.encoding_for_views(&tuned, args.slots, views).refine
+            args.fit
+                .encoding_for_views(&tuned, args.slots, views)
+                .refine
         };
         assert_eq!(for_views(&[], 1), 50);
         assert_eq!(for_views(&[], 3), 50 * MULTI_VIEW_REFINE_FACTOR);
