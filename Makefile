@@ -348,13 +348,14 @@ model-paper: build
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the bundled
 # default model adapted to each room set without labels, the paper's curriculum — 128,000 steps
 # at 64² (its 128,000 iterations), then 128² — on unlabelled colf-synth room scenes (the paper's
-# 1,000 and 5,000 training scenes; mask files deleted), proposals for the attention mask loss as
-# in the default model's last stage. Held-out: 16 validation scenes (64², then 128²) scored as it
+# 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
+# attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
+# background, which reads the image, drew the chairs: docs/training-log.md). Held-out: 16 validation scenes (64², then 128²) scored as it
 # trains, 100 test scenes at 128² at the end. Data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the
 # work tree; re-running resumes. Run with one thread beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_RUN ?= $(HOME)/colf-runs/rooms
-ROOM_COMMON := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
+ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
 # $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset.
 define room_model
