@@ -204,22 +204,27 @@ pub fn encode_scene(
     Ok(encode_views(model, &views, opts)?.0)
 }
 
+/// Why `inputs` cannot name the input views of any scene (none, or one twice), if so.
+pub fn input_views_error(inputs: &[usize]) -> Option<String> {
+    if inputs.is_empty() {
+        return Some("no input view to encode".into());
+    }
+    (1..inputs.len())
+        .find(|&i| inputs[..i].contains(&inputs[i]))
+        .map(|i| format!("input view {} is named twice", inputs[i]))
+}
+
 /// Refuses input views a scene does not have, or none, or one twice.
 fn check_inputs(scene: &SceneData, inputs: &[usize]) -> Result<()> {
-    if inputs.is_empty() {
-        bail!("no input view to encode");
+    if let Some(error) = input_views_error(inputs) {
+        bail!(error);
     }
-    for (i, &v) in inputs.iter().enumerate() {
-        if v >= scene.views.len() {
-            bail!(
-                "scene {} has {} views; there is no input view {v}",
-                scene.name,
-                scene.views.len()
-            );
-        }
-        if inputs[..i].contains(&v) {
-            bail!("input view {v} is named twice");
-        }
+    if let Some(&v) = inputs.iter().find(|&&v| v >= scene.views.len()) {
+        bail!(
+            "scene {} has {} views; there is no input view {v}",
+            scene.name,
+            scene.views.len()
+        );
     }
     Ok(())
 }

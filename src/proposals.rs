@@ -111,11 +111,12 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
     if n == 0 {
         return Vec::new();
     }
+    let chroma = chromaticities(image);
     let Background {
         colour: background,
         tolerance,
         chroma_tolerance,
-    } = background_layers(image, params);
+    } = background_layers(image, &chroma, params);
     let data = &image.data;
     let mut object = vec![false; n];
     let mut ids = vec![0u8; n];
@@ -151,7 +152,7 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         }
     }
     let min_area = ((params.min_area as f64 * n as f64).ceil() as usize).max(1);
-    let fragments = components_8(&object, w, h, |p, q| same_chroma(image, p, q, params));
+    let fragments = components_8(&object, w, h, |p, q| same_chroma(&chroma, p, q, params));
     let merge_below = (params.merge_below as f64 * n as f64).ceil() as usize;
     let mut components = merge_fragments(fragments, w, h, merge_below);
     // Largest first; ties by the first pixel, so the numbering is deterministic.
@@ -179,16 +180,21 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
     ids
 }
 
-/// Whether neighbouring pixels `p` and `q` have nearly the same chromaticity (r, g, b over
-/// r + g + b; within `params.chroma_edge` in every channel).
-fn same_chroma(image: &RgbImage32, p: usize, q: usize, params: &ProposalParams) -> bool {
-    let chroma = |p: usize| {
-        let px = &image.data[3 * p..3 * p + 3];
-        let sum = (px[0] + px[1] + px[2]).max(1e-3);
-        [px[0] / sum, px[1] / sum, px[2] / sum]
-    };
-    let (a, b) = (chroma(p), chroma(q));
-    (0..3).all(|c| (a[c] - b[c]).abs() < params.chroma_edge)
+/// The chromaticity of an RGB colour: r, g, b over r + g + b (the sum kept above 1e-3).
+fn chromaticity(rgb: &[f32]) -> [f32; 3] {
+    let sum = (rgb[0] + rgb[1] + rgb[2]).max(1e-3);
+    [rgb[0] / sum, rgb[1] / sum, rgb[2] / sum]
+}
+
+/// Every pixel's [`chromaticity`], row-major.
+fn chromaticities(image: &RgbImage32) -> Vec<[f32; 3]> {
+    image.data.chunks_exact(3).map(chromaticity).collect()
+}
+
+/// Whether neighbouring pixels `p` and `q` have nearly the same chromaticity (`chroma`, from
+/// [`chromaticities`]; within `params.chroma_edge` in every channel).
+fn same_chroma(chroma: &[[f32; 3]], p: usize, q: usize, params: &ProposalParams) -> bool {
+    (0..3).all(|c| (chroma[p][c] - chroma[q][c]).abs() < params.chroma_edge)
 }
 
 /// The background under every pixel: its colour (RGB, row-major) and how far a pixel may stray
@@ -203,7 +209,11 @@ fn same_chroma(image: &RgbImage32, p: usize, q: usize, params: &ProposalParams) 
 /// (else the search stops), and the floor is refitted without them. A surface's tolerance is
 /// `params.threshold`, or `params.texture` times its own spread where that is larger, so a
 /// wooden or tiled floor's grain is not taken for objects.
-fn background_layers(image: &RgbImage32, params: &ProposalParams) -> Background {
+fn background_layers(
+    image: &RgbImage32,
+    chroma: &[[f32; 3]],
+    params: &ProposalParams,
+) -> Background {
     let n = (image.w * image.h) as usize;
     let (w, h) = (image.w as usize, image.h as usize);
     let tolerance_of = |surface: &Surface| params.threshold.max(params.texture * surface.spread);
@@ -228,7 +238,7 @@ fn background_layers(image: &RgbImage32, params: &ProposalParams) -> Background 
             .map(|p| !claimed[p] && distance(p, &background) > params.threshold)
             .collect();
         let mut regions: Vec<Vec<usize>> =
-            components_8(&candidate, w, h, |p, q| same_chroma(image, p, q, params))
+            components_8(&candidate, w, h, |p, q| same_chroma(chroma, p, q, params))
                 .into_iter()
                 .filter(|c| c.len() >= layer_area && c.iter().any(|&p| on_border(p)))
                 .collect();
@@ -258,7 +268,7 @@ fn background_layers(image: &RgbImage32, params: &ProposalParams) -> Background 
                 let p = explained[next];
                 next += 1;
                 for q in neighbours_8(p, w, h) {
-                    if !taken[q] && !claimed[q] && fits(q) && same_chroma(image, p, q, params) {
+                    if !taken[q] && !claimed[q] && fits(q) && same_chroma(chroma, p, q, params) {
                         taken[q] = true;
                         explained.push(q);
                     }
@@ -325,12 +335,9 @@ struct Background {
 /// The largest channel difference between the chromaticities of pixel `p` and of `colour` at
 /// `p`; None where either is too dark for its chromaticity to mean anything.
 fn chroma_distance(image: &RgbImage32, p: usize, colour: &[f32]) -> Option<f32> {
-    let chroma = |rgb: &[f32]| {
-        let sum = rgb[0] + rgb[1] + rgb[2];
-        (sum >= 0.3).then(|| [rgb[0] / sum, rgb[1] / sum, rgb[2] / sum])
-    };
-    let a = chroma(&image.data[3 * p..3 * p + 3])?;
-    let b = chroma(&colour[3 * p..3 * p + 3])?;
+    let bright = |rgb: &[f32]| (rgb[0] + rgb[1] + rgb[2] >= 0.3).then(|| chromaticity(rgb));
+    let a = bright(&image.data[3 * p..3 * p + 3])?;
+    let b = bright(&colour[3 * p..3 * p + 3])?;
     Some((0..3).map(|c| (a[c] - b[c]).abs()).fold(0f32, f32::max))
 }
 

@@ -93,13 +93,18 @@ fn several_images_need_their_cameras() {
         2,
         "need --camera",
     );
-    fails_with(
-        bin("colf-encode")
-            .arg(&a)
+    // Views 0 and 1 with their cameras, and `extra`.
+    let two_views = |extra: &[&str]| {
+        let mut cmd = bin("colf-encode");
+        cmd.arg(&a)
             .arg(&b)
             .arg("--camera")
             .arg(&cameras)
-            .args(["--frame", "0", "--fast"]),
+            .args(extra);
+        cmd
+    };
+    fails_with(
+        &mut two_views(&["--frame", "0", "--fast"]),
         "encode",
         2,
         "one frame per image",
@@ -115,13 +120,7 @@ fn several_images_need_their_cameras() {
     );
     let out = dir.path().join("never.codes");
     fails_with(
-        bin("colf-encode")
-            .arg(&a)
-            .arg(&b)
-            .arg("--camera")
-            .arg(&cameras)
-            .args(["--frame", "0", "9", "--fast", "-o"])
-            .arg(&out),
+        two_views(&["--frame", "0", "9", "--fast", "-o"]).arg(&out),
         "encode",
         1,
         "--frame 9 does not exist",

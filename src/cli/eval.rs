@@ -228,12 +228,8 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     if dataset.is_empty() {
         bail!("{}: no scenes found", data.display());
     }
-    for (i, v) in args.input_views.iter().enumerate() {
-        if args.input_views[..i].contains(v) {
-            return Err(
-                crate::cli::UsageError(format!("--input-views: view {v} is named twice")).into(),
-            );
-        }
+    if let Some(error) = crate::evaluate::input_views_error(&args.input_views) {
+        return Err(crate::cli::UsageError(format!("--input-views: {error}")).into());
     }
     let protocol = crate::evaluate::Protocol {
         inputs: args.input_views.clone(),
