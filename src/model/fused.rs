@@ -25,15 +25,63 @@ pub enum Activation {
     Relu,
 }
 
+/// How the op's weight argument is laid out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum WeightLayout {
+    /// W [in, out] (or [S, in, out]), any strides.
+    InOut,
+    /// A `Linear` weight [out, in], used as its transpose: the weight's gradient is made in
+    /// this layout, so candle never adds a transposed gradient with a strided pass.
+    OutIn,
+}
+
 /// y = act(x·W + b); see the module documentation for the shapes.
 pub fn dense(x: &Tensor, w: &Tensor, b: &Tensor, act: Activation) -> Result<Tensor> {
     let x = x.contiguous()?;
     let b = b.contiguous()?;
     if x.device().is_cpu() && x.dtype() == DType::F32 && w.dtype() == DType::F32 {
         check_shapes(&x, w, &b)?;
-        return x.apply_op3(w, &b, Dense { act });
+        return x.apply_op3(
+            w,
+            &b,
+            Dense {
+                act,
+                weight: WeightLayout::InOut,
+            },
+        );
     }
     let y = x.matmul(w)?.broadcast_add(&b)?;
+    match act {
+        Activation::Identity => Ok(y),
+        Activation::Relu => y.relu(),
+    }
+}
+
+/// y = act(x·Wᵀ + b) for a `Linear`-layout weight W [out, in]: x [N, in], b [out].
+///
+/// The same function as `dense(x, &weight.t()?, b, act)`, but the weight's gradient is made
+/// [out, in] and contiguous. Through `.t()` candle adds it into a zero tensor twice, once through
+/// a strided transpose: on the hypernetworks' heads (millions of weights) that was a tenth of a
+/// training step.
+pub fn linear(x: &Tensor, weight: &Tensor, b: &Tensor, act: Activation) -> Result<Tensor> {
+    let x = x.contiguous()?;
+    let b = b.contiguous()?;
+    let weight = weight.contiguous()?;
+    if x.device().is_cpu() && x.dtype() == DType::F32 && weight.dtype() == DType::F32 {
+        check_shapes(&x, &weight.t()?, &b)?;
+        if x.rank() != 2 {
+            candle_core::bail!("linear: x must be [N, in], got {:?}", x.dims());
+        }
+        return x.apply_op3(
+            &weight,
+            &b,
+            Dense {
+                act,
+                weight: WeightLayout::OutIn,
+            },
+        );
+    }
+    let y = x.matmul(&weight.t()?)?.broadcast_add(&b)?;
     match act {
         Activation::Identity => Ok(y),
         Activation::Relu => y.relu(),
@@ -76,6 +124,7 @@ fn gemm_parallelism(work: usize) -> gemm::Parallelism {
 
 struct Dense {
     act: Activation,
+    weight: WeightLayout,
 }
 
 impl CustomOp3 for Dense {
@@ -103,14 +152,20 @@ impl CustomOp3 for Dense {
             f32_slice(ws, "w")?,
             f32_slice(bs, "b")?,
         );
-        let (batch, n, k, out, out_shape) = match (xl.dims(), wl.dims()) {
-            (&[n, k], &[_, o]) => (1, n, k, o, Shape::from((n, o))),
-            (&[s, n, k], &[_, _, o]) => (s, n, k, o, Shape::from((s, n, o))),
+        let (batch, n, k, out, out_shape) = match (xl.dims(), wl.dims(), self.weight) {
+            (&[n, k], &[_, o], WeightLayout::InOut) | (&[n, k], &[o, _], WeightLayout::OutIn) => {
+                (1, n, k, o, Shape::from((n, o)))
+            }
+            (&[s, n, k], &[_, _, o], WeightLayout::InOut) => (s, n, k, o, Shape::from((s, n, o))),
             _ => candle_core::bail!("dense: unsupported ranks"),
         };
         let w_stride = wl.stride();
         let rank = w_stride.len();
-        let (w_rs, w_cs) = (w_stride[rank - 2] as isize, w_stride[rank - 1] as isize);
+        // Strides of W as the [in, out] matrix the gemm reads.
+        let (w_rs, w_cs) = match self.weight {
+            WeightLayout::InOut => (w_stride[rank - 2] as isize, w_stride[rank - 1] as isize),
+            WeightLayout::OutIn => (w_stride[rank - 1] as isize, w_stride[rank - 2] as isize),
+        };
         let w_batch = if rank == 3 { w_stride[0] } else { 0 };
         let len = batch * n * out;
         let mut y: Vec<f32> = Vec::with_capacity(len);
@@ -176,17 +231,37 @@ impl CustomOp3 for Dense {
             Activation::Identity => grad_res,
             Activation::Relu => grad_res.apply_op2_no_bwd(res, &ReluMask)?,
         };
-        let grad_x = g.matmul(&w.t()?)?;
-        let grad_w = x.t()?.matmul(&g)?;
-        let rows = g.dim(g.rank() - 2)?;
-        let ones_shape: Vec<usize> = match g.dims() {
-            [_, _] => vec![1, rows],
-            [s, _, _] => vec![*s, 1, rows],
-            _ => candle_core::bail!("dense: unsupported rank"),
+        // Only what feeds a variable: candle asks for every argument's gradient, and refinement's
+        // constant weights would otherwise cost a gemm each (and a zeroed buffer to add it to).
+        let grad_x = if x.track_op() {
+            Some(match self.weight {
+                WeightLayout::InOut => g.matmul(&w.t()?)?,
+                WeightLayout::OutIn => g.matmul(w)?,
+            })
+        } else {
+            None
         };
-        let ones = Tensor::ones(ones_shape, DType::F32, g.device())?;
-        let grad_b = ones.matmul(&g)?.reshape(b.shape())?;
-        Ok((Some(grad_x), Some(grad_w), Some(grad_b)))
+        let grad_w = if w.track_op() {
+            Some(match self.weight {
+                WeightLayout::InOut => x.t()?.matmul(&g)?,
+                WeightLayout::OutIn => g.t()?.matmul(x)?,
+            })
+        } else {
+            None
+        };
+        let grad_b = if b.track_op() {
+            let rows = g.dim(g.rank() - 2)?;
+            let ones_shape: Vec<usize> = match g.dims() {
+                [_, _] => vec![1, rows],
+                [s, _, _] => vec![*s, 1, rows],
+                _ => candle_core::bail!("dense: unsupported rank"),
+            };
+            let ones = Tensor::ones(ones_shape, DType::F32, g.device())?;
+            Some(ones.matmul(&g)?.reshape(b.shape())?)
+        } else {
+            None
+        };
+        Ok((grad_x, grad_w, grad_b))
     }
 }
 
@@ -327,6 +402,51 @@ mod tests {
     #[test]
     fn matches_batched_matmul_bias_relu() {
         compare(&[3, 41, 6], &[3, 6, 10], &[3, 1, 10], false);
+    }
+
+    /// `linear` on a [out, in] weight: the values and gradients of `x·Wᵀ + b`, the weight's
+    /// gradient in the weight's own layout; constants get no gradient at all.
+    #[test]
+    fn linear_matches_the_transposed_matmul() {
+        let dev = Device::Cpu;
+        let (n, i, o) = (29, 7, 11);
+        let x = Var::from_vec(values(n * i, 1), (n, i), &dev).unwrap();
+        let w = Var::from_vec(values(o * i, 2), (o, i), &dev).unwrap();
+        let b = Var::from_vec(values(o, 3), o, &dev).unwrap();
+        let weight = Tensor::from_vec(values(n * o, 4), (n, o), &dev).unwrap();
+        for act in [Activation::Identity, Activation::Relu] {
+            let fused = linear(&x, &w, &b, act).unwrap();
+            let plain = x
+                .matmul(&w.t().unwrap())
+                .unwrap()
+                .broadcast_add(&b)
+                .unwrap();
+            let plain = match act {
+                Activation::Relu => plain.relu().unwrap(),
+                Activation::Identity => plain,
+            };
+            assert!(max_diff(&fused, &plain) < 1e-5);
+            let loss = |y: Tensor| (y * &weight).unwrap().sum_all().unwrap();
+            let gf = loss(fused).backward().unwrap();
+            let gp = loss(plain).backward().unwrap();
+            for v in [x.as_tensor(), w.as_tensor(), b.as_tensor()] {
+                let (a, c) = (gf.get(v).unwrap(), gp.get(v).unwrap());
+                assert_eq!(a.dims(), c.dims());
+                assert!(a.is_contiguous());
+                assert!(max_diff(a, c) < 1e-4, "{}", max_diff(a, c));
+            }
+        }
+        // A constant weight and bias (as refinement's) get no gradient; x still does.
+        let (w_const, b_const) = (w.as_tensor().detach(), b.as_tensor().detach());
+        let y = linear(&x, &w_const, &b_const, Activation::Relu).unwrap();
+        let grads = (y * &weight)
+            .unwrap()
+            .sum_all()
+            .unwrap()
+            .backward()
+            .unwrap();
+        assert!(grads.get(&w_const).is_none() && grads.get(&b_const).is_none());
+        assert!(grads.get(x.as_tensor()).is_some());
     }
 
     #[test]

@@ -15,7 +15,8 @@
 //! σ = gain/√fan_in is the Kaiming std of that layer (gain √2 before a ReLU, 1 on the last).
 
 use super::config::Config;
-use candle_core::{Module, Result, Tensor};
+use super::fused::{self, Activation};
+use candle_core::{Result, Tensor};
 use candle_nn::{linear, Init, Linear, VarBuilder};
 
 /// One light-field layer's generated parameters for S slots: weight [S, in, out], bias
@@ -32,6 +33,15 @@ struct LayerHeads {
     bias: Linear,
     fan_in: usize,
     fan_out: usize,
+}
+
+/// `layer` applied to x [S, in] as one fused op (the heads hold most of a model's weights, and
+/// their gradients are made in place; see [`fused::linear`]).
+fn linear_layer(x: &Tensor, layer: &Linear, act: Activation) -> Result<Tensor> {
+    match layer.bias() {
+        Some(bias) => fused::linear(x, layer.weight(), bias, act),
+        None => candle_core::bail!("hypernetwork layers have biases"),
+    }
 }
 
 /// A hypernetwork for light fields of widths `cfg.lfn_dims()`.
@@ -104,16 +114,15 @@ impl HyperNet {
         } else {
             latents.clone()
         };
-        let hidden = self.fc1.forward(&latents)?.relu()?;
+        let hidden = linear_layer(&latents, &self.fc1, Activation::Relu)?;
         self.layers
             .iter()
             .map(|l| {
                 Ok(GeneratedLayer {
-                    weight: l
-                        .weight
-                        .forward(&hidden)?
+                    weight: linear_layer(&hidden, &l.weight, Activation::Identity)?
                         .reshape((s, l.fan_in, l.fan_out))?,
-                    bias: l.bias.forward(&hidden)?.reshape((s, 1, l.fan_out))?,
+                    bias: linear_layer(&hidden, &l.bias, Activation::Identity)?
+                        .reshape((s, 1, l.fan_out))?,
                 })
             })
             .collect()
