@@ -54,6 +54,11 @@ pub struct SceneScores {
     /// pixels (an object drawn by two slots, or by the background alone, fails).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub objects_one_slot: Option<usize>,
+    /// …and the objects no slot draws (the background wins more than three quarters of their
+    /// pixels in every input view that shows them); the rest of the failures are split or
+    /// shared between slots.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub objects_no_slot: Option<usize>,
 }
 
 /// Which views of a scene are encoded and which are scored as novel views.
@@ -118,6 +123,9 @@ pub struct DatasetScores {
     pub one_slot_share: Option<f64>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub objects_seen_twice: Option<usize>,
+    /// …and the share of them that no slot draws (left to the background).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub no_slot_share: Option<f64>,
 }
 
 /// The quality scores of [`DatasetScores`] that carry a mean and a standard deviation, by name.
@@ -150,10 +158,14 @@ impl DatasetScores {
             .iter()
             .filter_map(|r| r.objects_seen_twice)
             .reduce(|a, b| a + b);
-        let one_slot: usize = rows.iter().filter_map(|r| r.objects_one_slot).sum();
-        let one_slot_share = objects_seen_twice
-            .filter(|&n| n > 0)
-            .map(|n| one_slot as f64 / n as f64);
+        let share = |count: fn(&SceneScores) -> Option<usize>| {
+            let counted: usize = rows.iter().filter_map(count).sum();
+            objects_seen_twice
+                .filter(|&n| n > 0)
+                .map(|n| counted as f64 / n as f64)
+        };
+        let one_slot_share = share(|r| r.objects_one_slot);
+        let no_slot_share = share(|r| r.objects_no_slot);
         DatasetScores {
             scenes: rows.len(),
             psnr,
@@ -175,6 +187,7 @@ impl DatasetScores {
             slots_kept: mean(rows.iter().map(|r| Some(r.slots_kept as f64))).unwrap_or(0.0),
             one_slot_share,
             objects_seen_twice,
+            no_slot_share,
         }
     }
 }
@@ -338,22 +351,33 @@ pub fn score_scene(
     row.nv_fg_ari = avg(&nv_fg_aris);
     row.fg_share = (fg_total > 0).then(|| fg_won as f64 / fg_total as f64);
     if inputs.len() > 1 {
-        if let Some((seen, one)) = objects_one_slot(scene, renders, inputs) {
-            row.objects_seen_twice = Some(seen);
-            row.objects_one_slot = Some(one);
+        if let Some(objects) = objects_one_slot(scene, renders, inputs) {
+            row.objects_seen_twice = Some(objects.seen_twice);
+            row.objects_one_slot = Some(objects.one_slot);
+            row.objects_no_slot = Some(objects.no_slot);
         }
     }
     Ok(row)
 }
 
-/// Of the ground-truth objects at least two input views show, how many, and how many exactly
-/// one slot draws (see [`SceneScores::objects_one_slot`]); None when an input view has no mask
-/// or the masks' ids are local to each view.
+/// Counts of ground-truth objects at least two input views show.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct ObjectSlots {
+    seen_twice: usize,
+    /// Drawn by exactly one slot ([`SceneScores::objects_one_slot`]).
+    one_slot: usize,
+    /// Drawn by no slot.
+    no_slot: usize,
+}
+
+/// Of the ground-truth objects at least two input views show, how many, how many exactly one
+/// slot draws (see [`SceneScores::objects_one_slot`]) and how many none; None when an input
+/// view has no mask or the masks' ids are local to each view.
 fn objects_one_slot(
     scene: &SceneData,
     renders: &[FrameRender],
     inputs: &[usize],
-) -> Option<(usize, usize)> {
+) -> Option<ObjectSlots> {
     use std::collections::{BTreeMap, BTreeSet};
     if scene.view_local_ids {
         // Proposal ids name no object across views.
@@ -390,8 +414,12 @@ fn objects_one_slot(
         .filter(|&(_, &views)| views >= 2)
         .map(|(&o, _)| o)
         .collect();
-    let one = twice.iter().filter(|o| drawn_by[o].len() == 1).count();
-    Some((twice.len(), one))
+    let drawn_by_n = |n: usize| twice.iter().filter(|o| drawn_by[o].len() == n).count();
+    Some(ObjectSlots {
+        seen_twice: twice.len(),
+        one_slot: drawn_by_n(1),
+        no_slot: drawn_by_n(0),
+    })
 }
 
 /// Evaluates the first `max_scenes` scenes of `data` (all when `None`), encoding and scoring
@@ -467,7 +495,14 @@ mod tests {
         };
         let renders = [ra, rb];
         // MIN_OBJECT_PIXELS is 10: a 4-pixel view shows no object.
-        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), Some((0, 0)));
+        let counts = |seen_twice, one_slot, no_slot| {
+            Some(ObjectSlots {
+                seen_twice,
+                one_slot,
+                no_slot,
+            })
+        };
+        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), counts(0, 0, 0));
         let big = |v: &View, r: &FrameRender| {
             let mut v = v.clone();
             let mut r = r.clone();
@@ -482,9 +517,22 @@ mod tests {
             ..scene
         };
         let renders = [ra, rb];
-        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), Some((2, 1)));
+        assert_eq!(objects_one_slot(&scene, &renders, &[0, 1]), counts(2, 1, 0));
         // One input view: no object is seen twice.
-        assert_eq!(objects_one_slot(&scene, &renders, &[0]), Some((0, 0)));
+        assert_eq!(objects_one_slot(&scene, &renders, &[0]), counts(0, 0, 0));
+        // The background draws object 2 in both views: no slot draws it.
+        let mut unseen = renders.clone();
+        for r in &mut unseen {
+            let fields = r.num_slots + 1;
+            for (p, &g) in scene.views[0].mask.as_ref().unwrap().iter().enumerate() {
+                if g == 2 {
+                    for f in 0..fields {
+                        r.weights[p * fields + f] = if f == 0 { 1.0 } else { 0.0 };
+                    }
+                }
+            }
+        }
+        assert_eq!(objects_one_slot(&scene, &unseen, &[0, 1]), counts(2, 1, 1));
         let local = SceneData {
             view_local_ids: true,
             ..scene

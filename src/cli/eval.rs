@@ -54,7 +54,7 @@ SSIM and the NV scores over the other views, and the JSON gains input_views, \
 objects_seen_twice (ground-truth objects that at least two input views show, 10 pixels or \
 more in each) and one_slot_share (the share of those that exactly one slot draws: the same \
 slot, and no other, wins at least a quarter of the object's pixels in every input view that \
-shows it). --novel-views 3 scores only view 3 as a novel view (recorded as novel_views), so \
+shows it), and no_slot_share (the share of them that no slot draws). --novel-views 3 scores only view 3 as a novel view (recorded as novel_views), so \
 one and three input views can be compared on the same held-out view.",
     after_help = "Examples:\n  colf-eval images renders/frame_0000.png data/scene_00000/view_001.png\n  \
 colf-eval masks renders/frame_0000.mask.png data/scene_00000/view_001.mask.png\n  \
