@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -386,6 +386,49 @@ model-room-chair: build
 	$(call room_model,room-chair,1000,81)
 model-room-diverse: build
 	$(call room_model,room-diverse,5000,82)
+
+# City-Block (issue 39; docs/training.md, "The city model"): the paper's recipe. c0: a static
+# background field pretrained alone on the street (K = 0 slots; the bundled default model's
+# image-reading background is discarded for it, its foreground kept). c1 (64²) and c2 (128²):
+# the default model's foreground slots on top, L2 only — the static background cannot draw the
+# cars, which differ from scene to scene, so the slots must. Unlabelled colf-synth city-block
+# scenes (the paper's 500; mask files deleted); held-out: 16 validation scenes as it trains,
+# 100 test scenes at 128² at the end, encoded from the two context views and scored on views 2
+# and 3. Data, checkpoints and logs in $(CITY_RUN); re-running resumes. One thread:
+#   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-city > LOG 2>&1 &
+CITY_RUN ?= $(HOME)/colf-runs/city
+CITY_COMMON := --mask-weight 0 --attention-mask-weight 0 --object-fraction 0 --views 4 \
+  --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16 --seed 91
+# The test protocol: encoded from the two context views, scored on the two street views.
+CITY_EVAL := --input-views 0,1 --novel-views 2,3
+CITY_BACKGROUND := --set static_background=true --set zero_background=true --set background_reader=false
+model-city: build
+	@mkdir -p $(CITY_RUN)/data
+	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
+	$(call unlabelled_set,$(CITY_RUN)/data/train128,500,--preset city-block --size 128)
+	test -d $(CITY_RUN)/data/val || $(RELEASE)/colf-synth --preset city-block \
+	  --out $(CITY_RUN)/data/val --scenes 16 --seed 7 -q
+	test -d $(CITY_RUN)/data/val128 || $(RELEASE)/colf-synth --preset city-block \
+	  --out $(CITY_RUN)/data/val128 --scenes 16 --seed 7 --size 128 -q
+	test -d $(CITY_RUN)/data/test128 || $(RELEASE)/colf-synth --preset city-block \
+	  --out $(CITY_RUN)/data/test128 --scenes 100 --split test --size 128 -q
+	test -f $(CITY_RUN)/c1.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(CITY_COMMON) --slots 0 --data $(CITY_RUN)/data/train \
+	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c0.safetensors \
+	  --steps 30000 --lr 1e-3 --warmup 200 --decay-from 20000 --final-lr 1e-4 \
+	  $(if $(wildcard $(CITY_RUN)/c0.safetensors.ckpt),--resume,--init models/default.safetensors $(CITY_BACKGROUND))
+	test -f $(CITY_RUN)/c2.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train \
+	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
+	  --steps 60000 --lr 5e-5 --warmup 200 --decay-from 45000 --final-lr 1e-5 \
+	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors)
+	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train128 \
+	  --eval-data $(CITY_RUN)/data/val128 --out $(CITY_RUN)/c2.safetensors \
+	  --steps 50000 --lr 2e-5 --warmup 100 --decay-from 35000 --final-lr 2e-6 \
+	  $(call resume_or_init,$(CITY_RUN)/c2.safetensors,$(CITY_RUN)/c1.safetensors)
+	$(RELEASE)/colf-train plot $(CITY_RUN)/c0.safetensors.log.jsonl $(CITY_RUN)/c1.safetensors.log.jsonl \
+	  $(CITY_RUN)/c2.safetensors.log.jsonl --label c0 --label c1 --label c2 -o $(CITY_RUN)/training.png
+	$(call eval_json,$(CITY_RUN)/data/test128,$(CITY_RUN)/c2.safetensors,$(CITY_RUN)/eval.json,$(CITY_EVAL))
 
 install: build
 	install -d $(DESTDIR)$(PREFIX)/bin $(DESTDIR)$(PREFIX)/share/man/man1

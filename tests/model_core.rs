@@ -256,21 +256,36 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
         .err()
         .unwrap();
     assert!(err.to_string().starts_with("m.safetensors: "), "{err}");
-    let not_zero = Colf::init(&tiny(), 3).unwrap();
-    let err = not_zero
+    // A background that reads the image is replaced, as the paper does for City-Block, by a
+    // fresh static field (to be pretrained): the foreground is kept, and training reaches the
+    // new field. The reader must go with it (a config keeping it is refused).
+    let reading_cfg = Config {
+        background_reader: true,
+        ..tiny()
+    };
+    let reading = Colf::init(&reading_cfg, 3).unwrap();
+    let city = ["zero_background=true", "static_background=true"].map(String::from);
+    assert!(reading_cfg.with_overrides(&city).is_err());
+    let mut without_reader = city.to_vec();
+    without_reader.push("background_reader=false".into());
+    let replaced = reading
         .reconfigured(
-            &tiny()
-                .with_overrides(&[
-                    "zero_background=true".into(),
-                    "static_background=true".into(),
-                ])
-                .unwrap(),
+            &reading_cfg.with_overrides(&without_reader).unwrap(),
             4,
-            "n.safetensors",
+            "n",
         )
-        .err()
         .unwrap();
-    assert!(err.to_string().contains("zero background"), "{err}");
+    let params = replaced.parameters();
+    assert!(params
+        .keys()
+        .all(|k| !k.starts_with("hypernet_bg.") && !k.starts_with("background_reader.")));
+    assert!(params.contains_key("background_field.layers.0.weight"));
+    for (name, before) in reading.parameters() {
+        if name.starts_with("hypernet_fg.") || name.starts_with("encoder.") {
+            assert_eq!(relative_gap(before, &params[name]), 0.0, "{name}");
+        }
+    }
+    assert_gradients_reach_every_parameter(replaced);
 }
 
 #[test]

@@ -43,8 +43,9 @@ Several images of one scene (IMAGE... with --camera, image i seen by --frame's i
 by default frame i) are encoded into one scene: each view is encoded as above (tries, and the \
 slots its own view does not need dropped), then slots of different views that draw the same \
 object are matched into one — each view's slots are rendered into the views before it, and two \
-slots whose label maps overlap (intersection over union at least 0.3 over those views) are one \
-object; the earlier view's slot stays — so an object seen in several views gets one slot and \
+slots whose label maps overlap (intersection over union at least 0.2 over those views) are one \
+object, as is a slot whose pixels lie mostly (60 %) inside one earlier slot's in every view (a \
+piece of an object a view split); the earlier view's slot stays — so an object seen in several views gets one slot and \
 an object only one view sees keeps its own; the background is the first view's. The kept slots \
 are then refined on all views at once (--refine-rays is per view; unless --refine says \
 otherwise, twice the model's default steps) and the slots no view needs dropped (--redundant on the mean error over the views). Each slot's source names the image it \

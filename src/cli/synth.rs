@@ -30,14 +30,17 @@ Presets: clevr567 (5-7 CLEVR shapes on a grey floor, cameras at distance 12.4, e
 degrees, uniform azimuth; the reference distribution), packed11 (exactly 11 shapes in the same \
 area), clevr567-textured (clevr567 on a procedural checker/noise floor), city (a long street \
 with 2-4 rows of boxy cars in two lanes, buildings and sky; each view stands in front of a row \
-of cars, in a lane, 0.4-2 units high, looking down the street), room-chair (after uORF's \
+of cars, in a lane, 0.4-2 units high, looking down the street), city-block (the paper's \
+City-Block: one street, the same buildings and light in every scene, two rows of cars 20 units \
+apart anywhere along it; views 0 and 1 are the rows' context views, 9 units in front of their \
+row, the others stand anywhere from the block's start to 5 units before the back row), room-chair (after uORF's \
 Room-Chair: 3-4 chairs of one procedural design in a walled 16 x 16 room on one of 3 floor \
 textures; cameras at distance 8.5, elevation 35 degrees, uniform azimuth, looking at the room's \
 centre), room-diverse (after uORF's Room-Diverse: as room-chair with chairs of 1200 procedural \
 designs and 50 floor textures). Cameras are redrawn (up to 20 times) until every object covers \
 a mask pixel in some view.\n\n\
 Without --scenes the paper's dataset size is generated: 1000 train and 500 test scenes \
-(room-diverse: 5000 train).",
+(room-diverse: 5000 train; city-block: 500 train, and its test split needs --scenes).",
     after_help = "Examples:\n  colf-synth --out data/train --scenes 1000\n  \
 colf-synth --out data/test --scenes 100 --split test --size 128\n  \
 colf-synth --out data/room-diverse-test --preset room-diverse --split test --size 128\n  \

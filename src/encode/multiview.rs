@@ -6,7 +6,8 @@
 //! every edit (moving one copy leaves the other). So the views' slots are **matched**: view by
 //! view, each slot set is rendered into every view taken so far, and two slots that cover the
 //! same pixels there (intersection over union of their label maps, summed over those views, at
-//! least [`MATCH_IOU`]) are one object; the slot already kept stays, the newcomer goes. A slot
+//! least [`MATCH_IOU`]) are one object, and so is a newcomer lying mostly inside one kept slot
+//! (a piece of an object its view split); the slot already kept stays, the newcomer goes. A slot
 //! no earlier slot matches is an object only this view saw, and joins. The background is the
 //! first view's. Then the default encoding's refinement runs on all views at once (its rays
 //! per step are per view: V views, V times the pixels a step), and the slots no view needs are
@@ -29,7 +30,12 @@ use anyhow::{bail, Result};
 
 /// Two slots from different views are one object when their label maps overlap this much
 /// (intersection over union over the views compared).
-pub const MATCH_IOU: f64 = 0.3;
+pub const MATCH_IOU: f64 = 0.2;
+
+/// A newcomer slot is a fragment of a kept slot's object when at least this share of its pixels
+/// lie inside that slot's, in every view where it draws [`FRAGMENT_PIXELS`] or more.
+pub const FRAGMENT_SHARE: f64 = 0.6;
+pub const FRAGMENT_PIXELS: usize = 4;
 
 /// With several views and no explicit step count, the refinement takes this many times the
 /// model's default steps: the single-view count stops before the input view is overfitted,
@@ -142,21 +148,50 @@ pub fn encode_views(
 }
 
 /// For each of `newcomers`' slots, the slot of `kept` that draws the same object in `views`,
-/// if any: pairs by decreasing intersection over union of their label maps (summed over the
-/// views), each slot in at most one pair, none under [`MATCH_IOU`].
+/// if any. First pairs by decreasing intersection over union of their label maps (summed over
+/// the views), each slot in at most one pair, none under [`MATCH_IOU`]. Then fragments: a
+/// newcomer still unmatched whose pixels lie mostly ([`FRAGMENT_SHARE`]) inside one kept
+/// slot's, in every view where it draws at least [`FRAGMENT_PIXELS`], is a piece of that
+/// slot's object (a view that split an object in two) and matches it too.
 pub fn match_slots(
     model: &Colf,
     kept: (&[Slot], &[f32]),
     newcomers: (&[Slot], &[f32]),
     views: &[InputView],
 ) -> Result<Vec<Option<usize>>> {
-    let (a, b) = (kept.0.len(), newcomers.0.len());
-    let mut intersection = vec![0usize; a * b];
-    let (mut area_a, mut area_b) = (vec![0usize; a], vec![0usize; b]);
+    let mut label_maps = Vec::with_capacity(views.len());
     for view in views {
-        let la = labels(model, kept.0, kept.1, view)?;
-        let lb = labels(model, newcomers.0, newcomers.1, view)?;
-        for (&x, &y) in la.iter().zip(&lb) {
+        label_maps.push((
+            labels(model, kept.0, kept.1, view)?,
+            labels(model, newcomers.0, newcomers.1, view)?,
+        ));
+    }
+    Ok(match_label_maps(
+        kept.0.len(),
+        newcomers.0.len(),
+        &label_maps,
+    ))
+}
+
+/// How two slot sets' label maps overlap in one view.
+struct ViewOverlap {
+    /// Pixels each kept slot draws.
+    kept_area: Vec<usize>,
+    /// Pixels each newcomer draws.
+    new_area: Vec<usize>,
+    /// [kept, newcomer]: pixels both draw.
+    intersection: Vec<usize>,
+}
+
+/// [`match_slots`] on the label maps (0 the background, k + 1 slot k) of `a` kept slots and
+/// `b` newcomers, one pair of maps per view.
+pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> Vec<Option<usize>> {
+    // Per view: the kept slots' and the newcomers' areas, and their intersections.
+    let mut per_view = Vec::with_capacity(views.len());
+    for (la, lb) in views {
+        let (mut area_a, mut area_b) = (vec![0usize; a], vec![0usize; b]);
+        let mut intersection = vec![0usize; a * b];
+        for (&x, &y) in la.iter().zip(lb.iter()) {
             if x > 0 {
                 area_a[x as usize - 1] += 1;
             }
@@ -167,12 +202,18 @@ pub fn match_slots(
                 intersection[(x as usize - 1) * b + y as usize - 1] += 1;
             }
         }
+        per_view.push(ViewOverlap {
+            kept_area: area_a,
+            new_area: area_b,
+            intersection,
+        });
     }
+    let total = |f: &dyn Fn(&ViewOverlap) -> usize| -> usize { per_view.iter().map(f).sum() };
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for i in 0..a {
         for j in 0..b {
-            let both = intersection[i * b + j];
-            let union = area_a[i] + area_b[j] - both;
+            let both = total(&|v| v.intersection[i * b + j]);
+            let union = total(&|v| v.kept_area[i]) + total(&|v| v.new_area[j]) - both;
             if both > 0 {
                 let iou = both as f64 / union as f64;
                 if iou >= MATCH_IOU {
@@ -191,7 +232,25 @@ pub fn match_slots(
             matched[j] = Some(i);
         }
     }
-    Ok(matched)
+    for (j, m) in matched.iter_mut().enumerate() {
+        if m.is_some() {
+            continue;
+        }
+        // The least share of j's pixels inside kept slot i over the views where j draws.
+        let inside = |i: usize| -> Option<f64> {
+            per_view
+                .iter()
+                .filter(|v| v.new_area[j] >= FRAGMENT_PIXELS)
+                .map(|v| v.intersection[i * b + j] as f64 / v.new_area[j] as f64)
+                .reduce(f64::min)
+        };
+        *m = (0..a)
+            .filter_map(|i| inside(i).map(|share| (share, i)))
+            .filter(|&(share, _)| share >= FRAGMENT_SHARE)
+            .max_by(|p, q| p.0.total_cmp(&q.0).then(q.1.cmp(&p.1)))
+            .map(|(_, i)| i);
+    }
+    matched
 }
 
 /// Which field draws each of `view`'s compared pixels when `slots` and `background` render it:
@@ -303,6 +362,46 @@ mod tests {
         // Against no slots: nothing matches.
         let none = match_slots(&model, (&[], &background), (&slots, &background), &[view]).unwrap();
         assert!(none.iter().all(|m| m.is_none()));
+    }
+
+    /// A label map of 16 pixels: pixels `ranges[k].0..ranges[k].1` drawn by slot k, the rest
+    /// background.
+    fn label_map(ranges: &[(usize, usize)]) -> Vec<u32> {
+        let mut map = vec![0u32; 16];
+        for (k, &(start, end)) in ranges.iter().enumerate() {
+            map[start..end].fill(k as u32 + 1);
+        }
+        map
+    }
+
+    #[test]
+    fn label_maps_match_by_overlap_then_by_fragment() {
+        // Kept: slot 0 on pixels 0–9, slot 1 on 12–15.
+        let kept = label_map(&[(0, 10), (12, 16)]);
+        // Newcomer 0 covers most of slot 0 (IoU 0.6) and pairs with it; newcomer 1 is the rest
+        // of that object, all 4 of its pixels inside slot 0: a fragment, it matches slot 0 too.
+        let split = label_map(&[(4, 10), (0, 4)]);
+        assert_eq!(
+            match_label_maps(2, 2, &[(kept.clone(), split.clone())]),
+            vec![Some(0), Some(0)]
+        );
+        // A second view where newcomer 1 lies outside slot 0: not a fragment (every view where
+        // it draws must agree), and too little overlap with anything to pair.
+        let elsewhere = label_map(&[(4, 10), (10, 14)]);
+        assert_eq!(
+            match_label_maps(2, 2, &[(kept.clone(), split), (kept.clone(), elsewhere)]),
+            vec![Some(0), None]
+        );
+        // A newcomer where no kept slot draws is a new object; one drawing too few pixels to
+        // judge is not a fragment.
+        assert_eq!(
+            match_label_maps(2, 2, &[(kept.clone(), label_map(&[(10, 12), (12, 13)]))]),
+            vec![None, Some(1)]
+        );
+        assert_eq!(
+            match_label_maps(2, 1, &[(kept, label_map(&[(10, 12)]))]),
+            vec![None]
+        );
     }
 
     #[test]

@@ -3,6 +3,10 @@
 //! - `static_background` on a zero-background model: the background hypernetwork's output at
 //!   the zero latent — the only light field it ever produced — becomes the background field's
 //!   weights (`background_field.`), and `hypernet_bg.` is dropped;
+//! - `static_background` (with `zero_background=true background_reader=false`) on a model whose
+//!   background reads the image: as the paper does for City-Block, that background is discarded
+//!   (`hypernet_bg.`, `background_reader.`) for a fresh background field, to be pretrained on the
+//!   new scenes (this growth changes renders: the background starts untrained);
 //! - a wider `hypernet_hidden`: each hypernetwork's new hidden units get fresh input weights and
 //!   zero output weights;
 //! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
@@ -54,7 +58,16 @@ pub fn grow_tensors(
             bail!("{name}: `static_background` applies to light-field models only");
         };
         if !old.zero_background {
-            bail!("{name}: `static_background` needs a model trained with a zero background latent; this one's background depends on the image");
+            if !cfg.zero_background || cfg.background_reader {
+                bail!("{name}: this model's background depends on the image; a static background replaces it only with `zero_background=true background_reader=false` as well");
+            }
+            // The paper's City-Block: the image-dependent background is discarded for a
+            // dedicated background field, fresh (to be pretrained on the new scenes).
+            out.retain(|k, _| {
+                !k.starts_with("hypernet_bg.") && !k.starts_with("background_reader.")
+            });
+            insert_fresh(&mut out, cfg, seed, &["background_field."])?;
+            return grow_rest(out, old, cfg, seed, name);
         }
         let zero = Tensor::zeros((1, old.slot_dim), DType::F32, &Device::Cpu)?;
         for (l, layer) in hypernet_bg.forward(&zero)?.into_iter().enumerate() {
@@ -72,6 +85,18 @@ pub fn grow_tensors(
     } else if old.static_background && !cfg.static_background {
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
     }
+    grow_rest(out, old, cfg, seed, name)
+}
+
+/// The growths after the background's: a zero latent made image-dependent, modules gained
+/// whole, wider hypernetworks and light fields.
+fn grow_rest(
+    mut out: BTreeMap<String, Tensor>,
+    old: &Config,
+    cfg: &Config,
+    seed: u64,
+    name: &str,
+) -> Result<BTreeMap<String, Tensor>> {
     if old.zero_background && !cfg.zero_background {
         // (A static background was refused above: it has no hypernetwork to feed.)
         if let Some(weight) = out.get_mut("hypernet_bg.fc1.weight") {
@@ -85,8 +110,8 @@ pub fn grow_tensors(
             bail!("{name}: a background reader grows only on a model trained with a zero background latent (its renders then start unchanged)");
         }
         gained.push("background_reader.");
-    } else if old.background_reader && !cfg.background_reader {
-        bail!("{name}: a model's background reader cannot be removed");
+    } else if old.background_reader && !cfg.background_reader && !cfg.static_background {
+        bail!("{name}: a model's background reader cannot be removed (except for a static background)");
     }
     if cfg.shadow_head && !old.shadow_head {
         // A fresh shadow head: σ ≈ 3·10⁻⁴ everywhere (see `heads.rs`).

@@ -30,6 +30,11 @@ pub enum Preset {
     #[value(name = "city")]
     #[serde(rename = "city")]
     City,
+    /// The paper's City-Block: one fixed street (the same buildings and light in every
+    /// scene), two rows of cars; views 0 and 1 are the rows' context views.
+    #[value(name = "city-block")]
+    #[serde(rename = "city-block")]
+    CityBlock,
     /// clevr567 on a procedural checker/noise floor.
     #[value(name = "clevr567-textured")]
     #[serde(rename = "clevr567-textured")]
@@ -50,6 +55,7 @@ impl Preset {
             Preset::Clevr567 => "clevr567",
             Preset::Packed11 => "packed11",
             Preset::City => "city",
+            Preset::CityBlock => "city-block",
             Preset::Clevr567Textured => "clevr567-textured",
             Preset::RoomChair => "room-chair",
             Preset::RoomDiverse => "room-diverse",
@@ -57,11 +63,13 @@ impl Preset {
     }
 
     /// The number of scenes of `split` in the paper's dataset (uORF's CLEVR-567, Room-Chair
-    /// and Room-Diverse; packed-CLEVR-11 and clevr567-textured as CLEVR-567); none for `city`.
+    /// and Room-Diverse; packed-CLEVR-11 and clevr567-textured as CLEVR-567; City-Block's 500
+    /// training scenes); none for `city` and City-Block's test split (the paper shows one).
     pub fn paper_scenes(self, split: super::Split) -> Option<u64> {
         use super::Split::{Test, Train};
         match (self, split) {
-            (Preset::City, _) => None,
+            (Preset::City, _) | (Preset::CityBlock, Test) => None,
+            (Preset::CityBlock, Train) => Some(500),
             (Preset::RoomDiverse, Train) => Some(5000),
             (_, Train) => Some(1000),
             (_, Test) => Some(500),
@@ -117,6 +125,7 @@ pub fn sample_scene(preset: Preset, rng: &mut StdRng) -> Scene {
             }
         }
         Preset::City => sample_city(rng, light),
+        Preset::CityBlock => sample_city_block(rng),
         Preset::RoomChair | Preset::RoomDiverse => sample_room(preset, rng, light),
     }
 }
@@ -254,7 +263,49 @@ pub const STREET_PAVEMENT_EDGE: f64 = 7.0;
 pub const STREET_LANE: f64 = 1.8;
 
 fn sample_city(rng: &mut StdRng, light: Light) -> Scene {
-    // Buildings along both sides from x = −40 to 150, and a tall block closing the street.
+    let buildings = sample_street(rng);
+    // Rows of cars across the two lanes, far apart along the street.
+    let n_rows = rng.random_range(2..=4);
+    let mut row_x = rng.random_range(0.0..=8.0);
+    let mut rows = Vec::with_capacity(n_rows);
+    let mut objects = Vec::new();
+    for _ in 0..n_rows {
+        rows.push(row_x);
+        add_row_of_cars(rng, row_x, &mut objects);
+        row_x += rng.random_range(14.0..=28.0);
+    }
+    street_scene(buildings, objects, rows, light)
+}
+
+/// The street of every `city-block` scene: its buildings drawn from this seed.
+pub const CITY_BLOCK_STREET_SEED: u64 = 0x0c17_b10c;
+/// City-Block's one light (azimuth, elevation in degrees), as its street is one.
+pub const CITY_BLOCK_LIGHT: [f64; 2] = [30.0, 55.0];
+/// City-Block's two rows: the front row's x is uniform in this range, the back row this far
+/// behind it (the paper: "the back row placed a fixed distance from the front row").
+pub const CITY_BLOCK_FRONT_ROW: std::ops::RangeInclusive<f64> = 0.0..=100.0;
+pub const CITY_BLOCK_ROW_GAP: f64 = 20.0;
+/// City-Block's context views stand this far in front of their row (the paper: "always
+/// captured at the same distance from each row of cars").
+pub const CITY_BLOCK_CONTEXT_DISTANCE: f64 = 9.0;
+
+/// The paper's City-Block: the same street (buildings and light) in every scene, two rows of
+/// cars a fixed distance apart, placed anywhere along the block.
+fn sample_city_block(rng: &mut StdRng) -> Scene {
+    use rand::SeedableRng;
+    let buildings = sample_street(&mut StdRng::seed_from_u64(CITY_BLOCK_STREET_SEED));
+    let front = rng.random_range(CITY_BLOCK_FRONT_ROW);
+    let rows = vec![front, front + CITY_BLOCK_ROW_GAP];
+    let mut objects = Vec::new();
+    for &row_x in &rows {
+        add_row_of_cars(rng, row_x, &mut objects);
+    }
+    let [azimuth, elevation] = CITY_BLOCK_LIGHT;
+    street_scene(buildings, objects, rows, Light::new(azimuth, elevation))
+}
+
+/// Buildings along both sides from x = −40 to 150, and a tall block closing the street.
+fn sample_street(rng: &mut StdRng) -> Vec<Building> {
     let palette = [
         [0.55, 0.5, 0.44],
         [0.5, 0.28, 0.22],
@@ -288,33 +339,38 @@ fn sample_city(rng: &mut StdRng, light: Light) -> Scene {
         half: [5.0, 40.0, 15.0],
         albedo: [0.5, 0.47, 0.42],
     });
+    buildings
+}
 
-    // Rows of cars across the two lanes, far apart along the street.
-    let n_rows = rng.random_range(2..=4);
-    let mut row_x = rng.random_range(0.0..=8.0);
-    let mut objects: Vec<Object> = Vec::new();
-    let mut rows = Vec::with_capacity(n_rows);
-    for _ in 0..n_rows {
-        rows.push(row_x);
-        let before = objects.len();
-        for (lane_y, heading) in [(-STREET_LANE, 0.0), (STREET_LANE, 180.0)] {
-            let mut lane_cars = Vec::new();
-            if rng.random_bool(0.85) || (lane_y > 0.0 && objects.len() == before) {
-                lane_cars.push(row_x + rng.random_range(-1.5..=1.5));
-                if rng.random_bool(0.4) {
-                    lane_cars.push(lane_cars[0] + rng.random_range(6.0..=7.5));
-                }
-            }
-            for x in lane_cars {
-                let y = lane_y + rng.random_range(-0.25..=0.25);
-                let car = sample_car(rng, x, y, heading);
-                if objects.iter().all(|o| !cars_overlap(o, &car)) {
-                    objects.push(car);
-                }
+/// Adds a row of cars at `row_x` across the two lanes: one car per lane (sometimes none,
+/// sometimes a second one behind it; at least one in the row), lane y = −STREET_LANE heading +X
+/// and +STREET_LANE heading −X, none overlapping `objects`.
+fn add_row_of_cars(rng: &mut StdRng, row_x: f64, objects: &mut Vec<Object>) {
+    let before = objects.len();
+    for (lane_y, heading) in [(-STREET_LANE, 0.0), (STREET_LANE, 180.0)] {
+        let mut lane_cars = Vec::new();
+        if rng.random_bool(0.85) || (lane_y > 0.0 && objects.len() == before) {
+            lane_cars.push(row_x + rng.random_range(-1.5..=1.5));
+            if rng.random_bool(0.4) {
+                lane_cars.push(lane_cars[0] + rng.random_range(6.0..=7.5));
             }
         }
-        row_x += rng.random_range(14.0..=28.0);
+        for x in lane_cars {
+            let y = lane_y + rng.random_range(-0.25..=0.25);
+            let car = sample_car(rng, x, y, heading);
+            if objects.iter().all(|o| !cars_overlap(o, &car)) {
+                objects.push(car);
+            }
+        }
     }
+}
+
+fn street_scene(
+    buildings: Vec<Building>,
+    objects: Vec<Object>,
+    rows: Vec<f64>,
+    light: Light,
+) -> Scene {
     Scene {
         objects,
         buildings,
@@ -384,9 +440,12 @@ pub fn sample_cameras(
         .map(|v| {
             let file_path = format!("view_{v:03}.png");
             match preset {
-                Preset::City => {
-                    // View v stands in front of row v mod rows, in a lane, between
+                Preset::City | Preset::CityBlock => {
+                    // City: view v stands in front of row v mod rows, in a lane, between
                     // near-ground and above-car height, facing down the street (+X).
+                    // City-Block: views 0 and 1 are the rows' context views, at a fixed
+                    // distance in front of their row; the others stand anywhere from the
+                    // block's start to just before the back row.
                     let rows = &scene.rows;
                     let target_row = rows.get(v % rows.len().max(1)).copied().unwrap_or(0.0);
                     let lane = if rng.random_bool(0.5) {
@@ -394,8 +453,18 @@ pub fn sample_cameras(
                     } else {
                         -STREET_LANE
                     };
+                    let x = match preset {
+                        Preset::CityBlock if v < rows.len() => {
+                            target_row - CITY_BLOCK_CONTEXT_DISTANCE
+                        }
+                        Preset::CityBlock => {
+                            let last = rows.iter().copied().fold(f64::MIN, f64::max);
+                            rng.random_range(-30.0..=last - 5.0)
+                        }
+                        _ => target_row - rng.random_range(7.0..=11.0),
+                    };
                     let eye = DVec3::new(
-                        target_row - rng.random_range(7.0..=11.0),
+                        x,
                         lane + rng.random_range(-0.3..=0.3),
                         rng.random_range(0.4..=2.0),
                     );
@@ -547,6 +616,35 @@ mod tests {
                 assert!(tracer.first_hit(ray.origin, ray.direction).is_some());
             }
         }
+    }
+
+    #[test]
+    fn city_block_is_one_street_with_two_rows_and_context_views() {
+        let street = |seed| {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let scene = sample_scene(Preset::CityBlock, &mut rng);
+            let cams = sample_cameras(Preset::CityBlock, &scene, &mut rng, 4);
+            (scene, cams)
+        };
+        let (first, _) = street(0);
+        for seed in 1..30 {
+            let (scene, cams) = street(seed);
+            // The same buildings and light; two rows a fixed distance apart.
+            assert_eq!(scene.buildings, first.buildings);
+            assert_eq!(scene.light, first.light);
+            assert_eq!(scene.rows.len(), 2);
+            assert!((scene.rows[1] - scene.rows[0] - CITY_BLOCK_ROW_GAP).abs() < 1e-9);
+            assert!(!scene.objects.is_empty());
+            // Context views at the fixed distance in front of their rows, facing down the street.
+            for (v, c) in cams.iter().enumerate() {
+                assert!(c.look_at[0] > c.position[0]);
+                if v < 2 {
+                    let gap = scene.rows[v] - c.position[0];
+                    assert!((gap - CITY_BLOCK_CONTEXT_DISTANCE).abs() < 1e-9, "{gap}");
+                }
+            }
+        }
+        assert_ne!(street(1).0.objects, street(2).0.objects);
     }
 
     #[test]
