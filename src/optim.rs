@@ -131,6 +131,7 @@ impl Adam {
         self.step += 1;
         let t = self.step as i32;
         let step_size = lr / (1.0 - c.beta1.powi(t));
+        let inv_bias2 = (1.0 / (1.0 - c.beta2.powi(t))) as f32;
         for (i, g) in grads.into_iter().enumerate() {
             let Some(g) = g else { continue };
             let var = &self.params[i].1;
@@ -140,7 +141,7 @@ impl Adam {
                 beta1: c.beta1 as f32,
                 beta2: c.beta2 as f32,
                 step_size: (step_size * self.lr_scale[i]) as f32,
-                inv_bias2: (1.0 / (1.0 - c.beta2.powi(t))) as f32,
+                inv_bias2,
                 eps: c.eps as f32,
             };
             var.as_tensor().inplace_op2(&g, &update)?;

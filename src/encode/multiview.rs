@@ -208,12 +208,26 @@ pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> V
             intersection,
         });
     }
-    let total = |f: &dyn Fn(&ViewOverlap) -> usize| -> usize { per_view.iter().map(f).sum() };
+    // Summed over the views, for the intersection over union.
+    let mut total = ViewOverlap {
+        kept_area: vec![0; a],
+        new_area: vec![0; b],
+        intersection: vec![0; a * b],
+    };
+    for v in &per_view {
+        for (sum, part) in [
+            (&mut total.kept_area, &v.kept_area),
+            (&mut total.new_area, &v.new_area),
+            (&mut total.intersection, &v.intersection),
+        ] {
+            sum.iter_mut().zip(part).for_each(|(s, p)| *s += p);
+        }
+    }
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for i in 0..a {
         for j in 0..b {
-            let both = total(&|v| v.intersection[i * b + j]);
-            let union = total(&|v| v.kept_area[i]) + total(&|v| v.new_area[j]) - both;
+            let both = total.intersection[i * b + j];
+            let union = total.kept_area[i] + total.new_area[j] - both;
             if both > 0 {
                 let iou = both as f64 / union as f64;
                 if iou >= MATCH_IOU {

@@ -37,24 +37,8 @@ enum WeightLayout {
 
 /// y = act(x·W + b); see the module documentation for the shapes.
 pub fn dense(x: &Tensor, w: &Tensor, b: &Tensor, act: Activation) -> Result<Tensor> {
-    let x = x.contiguous()?;
-    let b = b.contiguous()?;
-    if x.device().is_cpu() && x.dtype() == DType::F32 && w.dtype() == DType::F32 {
-        check_shapes(&x, w, &b)?;
-        return x.apply_op3(
-            w,
-            &b,
-            Dense {
-                act,
-                weight: WeightLayout::InOut,
-            },
-        );
-    }
-    let y = x.matmul(w)?.broadcast_add(&b)?;
-    match act {
-        Activation::Identity => Ok(y),
-        Activation::Relu => y.relu(),
-    }
+    check_shapes(x, w, b)?;
+    affine(x, w, b, act, WeightLayout::InOut)
 }
 
 /// y = act(x·Wᵀ + b) for a `Linear`-layout weight W [out, in]: x [N, in], b [out].
@@ -64,24 +48,32 @@ pub fn dense(x: &Tensor, w: &Tensor, b: &Tensor, act: Activation) -> Result<Tens
 /// a strided transpose: on the hypernetworks' heads (millions of weights) that was a tenth of a
 /// training step.
 pub fn linear(x: &Tensor, weight: &Tensor, b: &Tensor, act: Activation) -> Result<Tensor> {
+    if x.rank() != 2 {
+        candle_core::bail!("linear: x must be [N, in], got {:?}", x.dims());
+    }
+    check_shapes(x, &weight.t()?, b)?;
+    affine(x, &weight.contiguous()?, b, act, WeightLayout::OutIn)
+}
+
+/// The fused op for f32 on the CPU; anything else the plain composition of candle ops, which
+/// computes the same function. Shapes are checked by the callers.
+fn affine(
+    x: &Tensor,
+    w: &Tensor,
+    b: &Tensor,
+    act: Activation,
+    weight: WeightLayout,
+) -> Result<Tensor> {
     let x = x.contiguous()?;
     let b = b.contiguous()?;
-    let weight = weight.contiguous()?;
-    if x.device().is_cpu() && x.dtype() == DType::F32 && weight.dtype() == DType::F32 {
-        check_shapes(&x, &weight.t()?, &b)?;
-        if x.rank() != 2 {
-            candle_core::bail!("linear: x must be [N, in], got {:?}", x.dims());
-        }
-        return x.apply_op3(
-            &weight,
-            &b,
-            Dense {
-                act,
-                weight: WeightLayout::OutIn,
-            },
-        );
+    if x.device().is_cpu() && x.dtype() == DType::F32 && w.dtype() == DType::F32 {
+        return x.apply_op3(w, &b, Dense { act, weight });
     }
-    let y = x.matmul(&weight.t()?)?.broadcast_add(&b)?;
+    let w_in_out = match weight {
+        WeightLayout::InOut => w.clone(),
+        WeightLayout::OutIn => w.t()?,
+    };
+    let y = x.matmul(&w_in_out)?.broadcast_add(&b)?;
     match act {
         Activation::Identity => Ok(y),
         Activation::Relu => y.relu(),
