@@ -402,6 +402,10 @@ CITY_COMMON := --mask-weight 0 --attention-mask-weight 0 --object-fraction 0 --v
 # The test protocol: encoded from the two context views, scored on the two street views.
 CITY_EVAL := --input-views 0,1 --novel-views 2,3
 CITY_BACKGROUND := --set static_background=true --set zero_background=true --set background_reader=false
+# The slots' start (c1): the background's ordering measured from the nearest car on each ray,
+# not from the world origin, which on a street can lie far in front of the cars (c0 has no
+# slots, so it is unaffected).
+CITY_SLOTS := --set background_from_nearest_slot=true
 model-city: build
 	@mkdir -p $(CITY_RUN)/data
 	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
@@ -421,7 +425,8 @@ model-city: build
 	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
 	  --steps 60000 --lr 5e-5 --warmup 200 --decay-from 45000 --final-lr 1e-5 \
-	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors)
+	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors) \
+	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
 	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train128 \
 	  --eval-data $(CITY_RUN)/data/val128 --out $(CITY_RUN)/c2.safetensors \
 	  --steps 50000 --lr 2e-5 --warmup 100 --decay-from 35000 --final-lr 2e-6 \

@@ -461,12 +461,14 @@ impl Pixels {
             dirs: &d,
         }];
         let (mut d_coords, mut d_lines, mut d_shift) = (Vec::new(), Vec::new(), Vec::new());
+        let mut background_follows = Vec::new();
         for axis in 0..3 {
             let derivatives = at.frame_derivatives(cfg, &scene, axis)?;
             d_coords.push(derivatives.coords);
             // Shadow lines move with the frames too (their ground flags do not).
             d_lines.extend(derivatives.shadow_lines);
             d_shift.push(derivatives.shift);
+            background_follows = derivatives.background_follows;
         }
         let in_dim = cfg.ray_input_dim();
         let batch = at.into_batch(cfg, dev)?;
@@ -476,7 +478,7 @@ impl Pixels {
         };
         let coords = batch
             .coords
-            .apply_op2(offset, Linearised::new(d_coords, field_major, s))?;
+            .apply_op2(offset, Linearised::new(d_coords, field_major.clone(), s))?;
         let shadow_lines = match batch.shadow_lines {
             Some((lines, on_ground)) if d_lines.len() == 3 => Some((
                 lines.apply_op2(offset, Linearised::new(d_lines, field_major, s))?,
@@ -484,9 +486,10 @@ impl Pixels {
             )),
             other => other,
         };
-        let shift = batch
-            .shift
-            .apply_op2(offset, Linearised::new(d_shift, FieldLayout::Minor, s))?;
+        let shift = batch.shift.apply_op2(
+            offset,
+            Linearised::new(d_shift, FieldLayout::Minor { background_follows }, s),
+        )?;
         Ok((
             RayBatch {
                 coords,
@@ -587,12 +590,13 @@ impl Support {
 }
 
 /// How a linearised tensor's elements belong to fields (field 0, the background, never moves).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 enum FieldLayout {
     /// [S, R, in]: field-major blocks of `per_field` values (coordinates, shadow lines).
     Major { per_field: usize },
-    /// [1, R, S]: the field is the last index (ordering shifts).
-    Minor,
+    /// [1, R, S]: the field is the last index (ordering shifts). The background's shift of ray
+    /// r moves with field `background_follows[r]` (`FrameDerivatives`; 0 = with none).
+    Minor { background_follows: Vec<u32> },
 }
 
 /// x + Σ_axis ∂x/∂axis · offset[axis, field − 1] for a value x at the current frames, its
@@ -615,10 +619,14 @@ impl Linearised {
         }
     }
 
+    /// The field whose frame offset moves element `i` (0: none).
     fn field(&self, i: usize) -> usize {
-        match self.layout {
+        match &self.layout {
             FieldLayout::Major { per_field } => i / per_field,
-            FieldLayout::Minor => i % self.fields,
+            FieldLayout::Minor { background_follows } => match i % self.fields {
+                0 => background_follows[i / self.fields] as usize,
+                f => f,
+            },
         }
     }
 }
@@ -675,8 +683,8 @@ impl CustomOp2 for Linearised {
         let mut d_offset = vec![0f64; 3 * k];
         for (axis, d) in self.derivatives.iter().enumerate() {
             let sums = &mut d_offset[axis * k..(axis + 1) * k];
-            match self.layout {
-                FieldLayout::Major { per_field } => {
+            match &self.layout {
+                &FieldLayout::Major { per_field } => {
                     for (f, (gb, db)) in g
                         .chunks_exact(per_field)
                         .zip(d.chunks_exact(per_field))
@@ -688,10 +696,17 @@ impl CustomOp2 for Linearised {
                         sums[f - 1] += dot as f64;
                     }
                 }
-                FieldLayout::Minor => {
-                    for (gr, dr) in g.chunks_exact(s).zip(d.chunks_exact(s)) {
+                FieldLayout::Minor { background_follows } => {
+                    for ((gr, dr), &follows) in g
+                        .chunks_exact(s)
+                        .zip(d.chunks_exact(s))
+                        .zip(background_follows)
+                    {
                         for f in 1..s {
                             sums[f - 1] += (gr[f] * dr[f]) as f64;
+                        }
+                        if follows > 0 {
+                            sums[follows as usize - 1] += (gr[0] * dr[0]) as f64;
                         }
                     }
                 }
@@ -893,13 +908,22 @@ mod tests {
         }
     }
 
+    /// Also with the background's ordering measured from the nearest slot, whose shift then
+    /// moves with that slot's frame.
     #[test]
     fn frame_gradients_match_finite_differences_of_the_loss() {
-        let mut cfg = Config::small();
-        cfg.ray_fourier_freqs = 2;
-        cfg.fg_locality = 2.0;
-        cfg.attention_frames = true;
-        let model = Colf::init(&cfg, 8).unwrap();
+        for from_nearest in [false, true] {
+            let mut cfg = Config::small();
+            cfg.ray_fourier_freqs = 2;
+            cfg.fg_locality = 2.0;
+            cfg.attention_frames = true;
+            cfg.background_from_nearest_slot = from_nearest;
+            check_frame_gradients(&cfg);
+        }
+    }
+
+    fn check_frame_gradients(cfg: &Config) {
+        let model = Colf::init(cfg, 8).unwrap();
         let d = cfg.slot_dim;
         let cam = camera(12);
         let fg = latents(2, d, 9);

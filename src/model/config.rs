@@ -92,6 +92,14 @@ pub struct Config {
     /// (see `rays.rs`). Absent in older files (= 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub fg_locality: f64,
+    /// The background's ordering value on a ray is measured from the nearest foreground frame
+    /// origin along it (the smallest (t − o)·d̂ over the slots) instead of from the world
+    /// origin. On scenes much longer than `scene_scale` (a street, a merged scene) the world
+    /// origin can lie tens of units in front of the objects on a ray, and no bounded ordering
+    /// output can put the background behind them; from the nearest slot it can, anywhere.
+    /// Without slots it falls back to the world origin. Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub background_from_nearest_slot: bool,
     /// With `attention_frames`, scenes whose objects rest on the ground plane z = 0 (world +Z
     /// up, as in clevr567): each foreground frame's origin is where the slot's centroid ray
     /// meets the plane z = this height (about an object's centre height), instead of at the
@@ -261,6 +269,7 @@ impl Config {
             hypernet_rms_norm: true,
             attention_frames: false,
             fg_locality: 0.0,
+            background_from_nearest_slot: false,
             frame_ground_height: 0.0,
             shadow_head: false,
             shadow_light: None,

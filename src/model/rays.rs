@@ -250,7 +250,7 @@ impl HostRays {
             // 5. The ordering shifts that make slots in different frames comparable.
             for (ri, &(o, d)) in camera_lines.iter().enumerate() {
                 let row = &mut shift[(bi * r + ri) * s..(bi * r + ri + 1) * s];
-                base[bi * r + ri] = ordering_shifts(&frames, o, d, cfg.fg_locality, row);
+                base[bi * r + ri] = ordering_shifts(cfg, &frames, o, d, row);
             }
         }
         Ok(HostRays {
@@ -274,8 +274,12 @@ pub struct FrameDerivatives {
     pub coords: Vec<f32>,
     /// ∂(shadow lines)/∂t_axis, with `Config::shadow_light`.
     pub shadow_lines: Option<Vec<f32>>,
-    /// ∂(ordering shift, before the base is subtracted)/∂t_axis [B, R, S].
+    /// ∂(ordering shift, before the base is subtracted)/∂t_axis [B, R, S]. The background's
+    /// entry is its shift's derivative along the frame it follows (`background_follows`).
     pub shift: Vec<f32>,
+    /// Per ray [B·R], the foreground field (≥ 1) whose frame the background's ordering shift
+    /// moves with (`Config::background_from_nearest_slot`), or 0 when it moves with none.
+    pub background_follows: Vec<u32>,
 }
 
 /// ∂(encoded line)/∂δ for the line's frame origin moved by δ along the world vector whose image
@@ -326,11 +330,27 @@ impl HostRays {
         let mut coords = vec![0f32; self.coords.len()];
         let mut lines = self.shadow_lines.as_ref().map(|(l, _)| vec![0f32; l.len()]);
         let mut shift = vec![0f32; self.shift.len()];
+        let mut background_follows = vec![0u32; scenes.len() * r];
         let to_light = cfg.shadow_light.map(light_direction);
         let mut world_axis = DVec3::ZERO;
         world_axis[axis] = 1.0;
         for (bi, scene) in scenes.iter().enumerate() {
             let inverses = check(bi, scene)?;
+            // The background's shift moves with the nearest frame's along = (t − o)·d̂.
+            let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
+            frames.extend(
+                inverses
+                    .iter()
+                    .zip(scene.slot_to_world)
+                    .map(|(inv, m)| (*inv, m.w_axis.truncate())),
+            );
+            for ri in 0..r {
+                let d_hat = scene.dirs[ri].normalize();
+                if let Some(nearest) = background_anchor(cfg, &frames, scene.origins[ri], d_hat) {
+                    shift[(bi * r + ri) * s] = d_hat[axis] as f32;
+                    background_follows[bi * r + ri] = nearest as u32;
+                }
+            }
             for (k, (inv, m)) in inverses.iter().zip(scene.slot_to_world).enumerate() {
                 let field = bi * s + 1 + k;
                 let frame_axis = inv.transform_vector3(world_axis);
@@ -376,6 +396,7 @@ impl HostRays {
             coords,
             shadow_lines: lines,
             shift,
+            background_follows,
         })
     }
 }
@@ -417,29 +438,33 @@ fn encode_fields(
 }
 
 /// The ordering shifts of the ray (o, d) for each field (`frames`' origins): how far along the
-/// ray its frame origin lies (plus ρ²/`locality` for foreground slots with a locality bound, ρ
-/// the ray's distance from the origin), written into `row` relative to the smallest, which is
-/// returned as the ray's base.
+/// ray its frame origin lies (plus ρ²/`Config::fg_locality` for foreground slots with a locality
+/// bound, ρ the ray's distance from the origin; the background's from the nearest foreground
+/// origin with `Config::background_from_nearest_slot`), written into `row` relative to the
+/// smallest, which is returned as the ray's base.
 fn ordering_shifts(
+    cfg: &Config,
     frames: &[(DMat4, DVec3)],
     o: DVec3,
     d: DVec3,
-    locality: f64,
     row: &mut [f32],
 ) -> f64 {
     let d = d.normalize();
-    let shifts: Vec<f64> = frames
+    let mut shifts: Vec<f64> = frames
         .iter()
         .enumerate()
         .map(|(si, (_, t))| {
             let along = (*t - o).dot(d);
-            if si == 0 || locality == 0.0 {
+            if si == 0 || cfg.fg_locality == 0.0 {
                 return along;
             }
             let rho_sq = ((*t - o) - along * d).length_squared();
-            along + rho_sq / locality
+            along + rho_sq / cfg.fg_locality
         })
         .collect();
+    if let Some(nearest) = background_anchor(cfg, frames, o, d) {
+        shifts[0] = (frames[nearest].1 - o).dot(d);
+    }
     let lo = shifts.iter().copied().fold(f64::INFINITY, f64::min);
     for (out, v) in row.iter_mut().zip(&shifts) {
         *out = (v - lo) as f32;
@@ -447,18 +472,49 @@ fn ordering_shifts(
     lo
 }
 
+/// With `Config::background_from_nearest_slot` and some slots: the field (≥ 1) whose frame
+/// origin lies nearest along the ray (o, d̂), from which the background's ordering is measured
+/// (the first on ties); `None` when the background keeps the world origin.
+fn background_anchor(
+    cfg: &Config,
+    frames: &[(DMat4, DVec3)],
+    o: DVec3,
+    d_hat: DVec3,
+) -> Option<usize> {
+    if !cfg.background_from_nearest_slot {
+        return None;
+    }
+    let mut nearest: Option<(usize, f64)> = None;
+    for (field, (_, t)) in frames.iter().enumerate().skip(1) {
+        let along = (*t - o).dot(d_hat);
+        if nearest.is_none_or(|(_, best)| along < best) {
+            nearest = Some((field, along));
+        }
+    }
+    nearest.map(|(field, _)| field)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    /// The analytic frame derivatives agree with forward differences of the encoding.
+    /// The analytic frame derivatives agree with forward differences of the encoding, one
+    /// frame moved at a time: its own field's values move by its derivatives, the background's
+    /// ordering shift by its own where it follows that frame, nothing else.
     #[test]
     fn frame_derivatives_match_forward_differences() {
-        let mut cfg = Config::small();
-        cfg.ray_fourier_freqs = 3;
-        cfg.fg_locality = 2.0;
-        cfg.shadow_head = true;
-        cfg.shadow_light = Some([30.0, 55.0]);
+        for from_nearest in [false, true] {
+            let mut cfg = Config::small();
+            cfg.ray_fourier_freqs = 3;
+            cfg.fg_locality = 2.0;
+            cfg.shadow_head = true;
+            cfg.shadow_light = Some([30.0, 55.0]);
+            cfg.background_from_nearest_slot = from_nearest;
+            check_frame_derivatives(&cfg);
+        }
+    }
+
+    fn check_frame_derivatives(cfg: &Config) {
         let frames = [
             DMat4::from_rotation_translation(
                 glam::DQuat::from_rotation_z(0.7),
@@ -466,11 +522,13 @@ mod tests {
             ),
             DMat4::from_translation(DVec3::new(-2.0, 1.5, 0.4)),
         ];
+        // The first ray passes nearest to the first frame, the second to the second.
         let origins = [DVec3::new(8.0, -9.0, 7.0), DVec3::new(-10.0, 2.5, 6.0)];
         let dirs = [DVec3::new(-0.6, 0.8, -0.5), DVec3::new(1.0, -0.1, -0.6)];
-        let scene = |f: &[DMat4]| {
+        let (s, r) = (3, 2);
+        let scene_at = |f: &'_ [DMat4]| -> HostRays {
             HostRays::new(
-                &cfg,
+                cfg,
                 &[SceneRays {
                     slot_to_world: f,
                     origins: &origins,
@@ -479,24 +537,20 @@ mod tests {
             )
             .unwrap()
         };
-        let at = scene(&frames);
+        let at = scene_at(&frames);
         let absolute = |h: &HostRays| -> Vec<f64> {
             h.shift
-                .chunks_exact(3)
+                .chunks_exact(s)
                 .zip(&h.base)
                 .flat_map(|(row, b)| row.iter().map(move |v| *v as f64 + b))
                 .collect()
         };
+        let close = |fd: f64, a: f32| (fd - a as f64).abs() < 2e-3 * (1.0 + fd.abs());
+        let per_field = r * cfg.ray_input_dim();
         for axis in 0..3 {
-            let step = 1e-4;
-            let mut moved = frames;
-            for f in moved.iter_mut() {
-                f.w_axis[axis] += step;
-            }
-            let ahead = scene(&moved);
             let analytic = at
                 .frame_derivatives(
-                    &cfg,
+                    cfg,
                     &[SceneRays {
                         slot_to_world: &frames,
                         origins: &origins,
@@ -505,25 +559,81 @@ mod tests {
                     axis,
                 )
                 .unwrap();
-            let close = |fd: f64, a: f32| (fd - a as f64).abs() < 2e-3 * (1.0 + fd.abs());
-            for (i, a) in analytic.coords.iter().enumerate() {
-                let fd = (ahead.coords[i] as f64 - at.coords[i] as f64) / step;
-                assert!(close(fd, *a), "axis {axis}, coordinate {i}: {fd} vs {a}");
+            let follows = &analytic.background_follows;
+            if cfg.background_from_nearest_slot {
+                assert_eq!(follows, &[1, 2]);
+            } else {
+                assert_eq!(follows, &[0, 0]);
             }
-            let (ahead_l, at_l) = (
-                &ahead.shadow_lines.as_ref().unwrap().0,
-                &at.shadow_lines.as_ref().unwrap().0,
-            );
-            for (i, a) in analytic.shadow_lines.as_ref().unwrap().iter().enumerate() {
-                let fd = (ahead_l[i] as f64 - at_l[i] as f64) / step;
-                assert!(close(fd, *a), "axis {axis}, line value {i}: {fd} vs {a}");
-            }
-            let (sa, sb) = (absolute(&ahead), absolute(&at));
-            for (i, a) in analytic.shift.iter().enumerate() {
-                let fd = (sa[i] - sb[i]) / step;
-                assert!(close(fd, *a), "axis {axis}, shift {i}: {fd} vs {a}");
+            for moved_field in 1..s {
+                let step = 1e-4;
+                let mut moved = frames;
+                moved[moved_field - 1].w_axis[axis] += step;
+                let ahead = scene_at(&moved);
+                // A value of field f moves with this frame when f is the moved field.
+                let owned = |i: usize| i / per_field == moved_field;
+                for (i, a) in analytic.coords.iter().enumerate() {
+                    let fd = (ahead.coords[i] as f64 - at.coords[i] as f64) / step;
+                    let a = if owned(i) { *a } else { 0.0 };
+                    assert!(close(fd, a), "axis {axis}, coordinate {i}: {fd} vs {a}");
+                }
+                let (ahead_l, at_l) = (
+                    &ahead.shadow_lines.as_ref().unwrap().0,
+                    &at.shadow_lines.as_ref().unwrap().0,
+                );
+                for (i, a) in analytic.shadow_lines.as_ref().unwrap().iter().enumerate() {
+                    let fd = (ahead_l[i] as f64 - at_l[i] as f64) / step;
+                    let a = if owned(i) { *a } else { 0.0 };
+                    assert!(close(fd, a), "axis {axis}, line value {i}: {fd} vs {a}");
+                }
+                let (sa, sb) = (absolute(&ahead), absolute(&at));
+                for (i, a) in analytic.shift.iter().enumerate() {
+                    let (ray, field) = (i / s, i % s);
+                    let moves = field == moved_field
+                        || (field == 0 && follows[ray] as usize == moved_field);
+                    let a = if moves { *a } else { 0.0 };
+                    let fd = (sa[i] - sb[i]) / step;
+                    // Shifts are stored in f32 relative to the base: allow their rounding.
+                    let rounding = 2.0 * f32::EPSILON as f64 * (1.0 + sb[i].abs()) / step;
+                    assert!(
+                        (fd - a as f64).abs() < 2e-3 * (1.0 + fd.abs()) + rounding,
+                        "axis {axis}, shift {i}: {fd} vs {a}"
+                    );
+                }
             }
         }
+    }
+
+    /// On a long street the world origin lies far in front of the cars on a ray: measured from
+    /// it the background's ordering is far ahead of every slot; from the nearest slot it is not.
+    #[test]
+    fn the_background_can_be_measured_from_the_nearest_slot() {
+        let car = |x: f64| (DMat4::IDENTITY, DVec3::new(x, 0.0, 0.5));
+        let frames = [(DMat4::IDENTITY, DVec3::ZERO), car(120.0), car(100.0)];
+        // A camera at x = 90 looking down the street (+x).
+        let (o, d) = (DVec3::new(90.0, 0.0, 1.0), DVec3::new(1.0, 0.0, -0.01));
+        let mut cfg = Config::small();
+        cfg.fg_locality = 2.0;
+        let mut row = [0f32; 3];
+        let base = ordering_shifts(&cfg, &frames, o, d, &mut row);
+        // From the world origin: about −90, the smallest, so the background comes first.
+        assert_eq!(row[0], 0.0);
+        assert!(base < -89.0 && row[2] > 99.0, "{base} {row:?}");
+        cfg.background_from_nearest_slot = true;
+        let base = ordering_shifts(&cfg, &frames, o, d, &mut row);
+        let nearest = (frames[2].1 - o).dot(d.normalize());
+        // The nearest car's along (no locality term), against its own with the term.
+        assert!(
+            (base - nearest).abs() < 1e-12 && row[0] == 0.0,
+            "{base} {row:?}"
+        );
+        assert!(row[2] > 0.0 && row[1] > row[2], "{row:?}");
+        assert_eq!(background_anchor(&cfg, &frames, o, d.normalize()), Some(2));
+        // Without slots the world origin it is.
+        assert_eq!(
+            background_anchor(&cfg, &frames[..1], o, d.normalize()),
+            None
+        );
     }
 
     #[test]
