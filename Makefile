@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -124,6 +124,55 @@ demo: build
 # large cyan one leaves a faint cyan haze (docs/training-log.md, run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
+
+# The city demo (issue 39): CITY_STREETS held-out city-block streets at 128², each encoded from
+# its two context views into one scene (one background, one slot a car: colf-encode matches the
+# views' slots); street 0 edited by position (examples/demo-city-edits.json: the red car of the
+# front row removed, the yellow one moved to the other lane and turned) and a drive down the
+# street rendered before and after; then every street's cars merged into one scene and lined up
+# in the street's four lanes (examples/city_traffic.rs writes the colf-edit script), rendered
+# along the same street with its time and peak memory (GNU time) in $(CITY_DEMO)/traffic-time.txt.
+# The sheet: row 1 street 0's two context views; rows 2–3 the drive and its masks (one colour a
+# slot); row 4 the edited drive; rows 5–6 the merged traffic and its masks. CITY_MODEL: the
+# city model (make model-city).
+CITY_DEMO := out/demo-city
+CITY_STREETS ?= 16
+CITY_MODEL ?= $(CITY_RUN)/c2.safetensors
+CITY_DRIVE := --from 40,0,1.3 --to 108,0,1.3 --look-at 70,0,0.5 --look-at-end 140,0,0.5
+demo-city: build
+	$(CARGO) build --release --example city_traffic
+	@mkdir -p $(CITY_DEMO)
+	$(RELEASE)/colf-synth --preset city-block --split test --scenes $(CITY_STREETS) --seed 7 \
+	  --size 128 --out $(CITY_DEMO)/data -q --force
+	for scene in $(CITY_DEMO)/data/scene_*; do \
+	  $(RELEASE)/colf-encode $$scene/view_000.png $$scene/view_001.png --camera $$scene/transforms.json \
+	    --model $(CITY_MODEL) -o $(CITY_DEMO)/street_$${scene##*_}.codes || exit 1; \
+	done
+	$(RELEASE)/colf-edit --inspect $(CITY_DEMO)/street_00000.codes > $(CITY_DEMO)/slots.json
+	$(RELEASE)/colf-edit examples/demo-city-edits.json $(CITY_DEMO)/street_00000.codes \
+	  -o $(CITY_DEMO)/edited.codes
+	$(RELEASE)/colf-cameras line $(CITY_DRIVE) --frames 6 --size 128 -o $(CITY_DEMO)/drive.json
+	$(RELEASE)/colf-render $(CITY_DEMO)/street_00000.codes --model $(CITY_MODEL) \
+	  --cameras $(CITY_DEMO)/drive.json --out $(CITY_DEMO)/drive --masks -q
+	$(RELEASE)/colf-render $(CITY_DEMO)/edited.codes --model $(CITY_MODEL) \
+	  --cameras $(CITY_DEMO)/drive.json --out $(CITY_DEMO)/drive-edited --masks -q
+	$(RELEASE)/examples/city_traffic $(CITY_DEMO)/street_*.codes > $(CITY_DEMO)/traffic-edits.json
+	$(RELEASE)/colf-edit $(CITY_DEMO)/traffic-edits.json $(CITY_DEMO)/street_00000.codes \
+	  -o $(CITY_DEMO)/traffic.codes
+	$(RELEASE)/colf-cameras line --from -30,0,1.3 --to 100,0,1.3 --look-at 0,0,0.5 \
+	  --look-at-end 140,0,0.5 --frames 6 --size 128 -o $(CITY_DEMO)/traffic-drive.json
+	/usr/bin/time -f "colf-render, merged streets: %e s wall, %U s user, %M KiB peak memory" \
+	  -o $(CITY_DEMO)/traffic-time.txt $(RELEASE)/colf-render $(CITY_DEMO)/traffic.codes \
+	  --model $(CITY_MODEL) --cameras $(CITY_DEMO)/traffic-drive.json --out $(CITY_DEMO)/traffic --masks -q
+	$(RELEASE)/colf-edit --inspect $(CITY_DEMO)/traffic.codes | grep -c '"index"' \
+	  | sed 's/^/slots in the merged scene: /' >> $(CITY_DEMO)/traffic-time.txt
+	$(RELEASE)/colf-sheet --cols 6 --scale 2 -o $(CITY_DEMO)/sheet.png \
+	  $(CITY_DEMO)/data/scene_00000/view_00{0,1}.png - - - - \
+	  $(CITY_DEMO)/drive/frame_000{0,1,2,3,4,5}.png $(CITY_DEMO)/drive/frame_000{0,1,2,3,4,5}.mask.png \
+	  $(CITY_DEMO)/drive-edited/frame_000{0,1,2,3,4,5}.png \
+	  $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.png $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.mask.png
+	@cat $(CITY_DEMO)/traffic-time.txt
+	@echo "demo-city: renders in $(CITY_DEMO)/{drive,drive-edited,traffic}, contact sheet $(CITY_DEMO)/sheet.png"
 
 # The `supervised` model's recipe (docs/training.md; runs in docs/training-log.md, "The supervised model"; it was the default
 # model until the unsupervised one matched it): clevr567 scenes at 64², 100 held

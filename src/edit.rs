@@ -14,6 +14,13 @@ use serde_json::{Map, Value};
 pub enum Selection {
     All,
     Indices(Vec<usize>),
+    /// The one slot whose frame origin lies nearest `point` (the first on ties), refused when
+    /// it is farther than `within`: scripts that name an object by where it stands, not by
+    /// the index an encoding happened to give it.
+    Near {
+        point: DVec3,
+        within: Option<f64>,
+    },
 }
 
 /// One edit operation.
@@ -151,8 +158,11 @@ impl Fields<'_> {
         if v.as_str() == Some("all") {
             return Ok(Selection::All);
         }
+        if let Some(near) = v.as_object() {
+            return near_selection(field, near);
+        }
         let items = v.as_array().ok_or_else(|| {
-            anyhow!("field `{field}`: expected \"all\" or an array of slot indices, got {v}")
+            anyhow!("field `{field}`: expected \"all\", an array of slot indices or {{\"near\": [x, y, z]}}, got {v}")
         })?;
         let indices = items
             .iter()
@@ -172,6 +182,27 @@ impl Fields<'_> {
             Ok(Selection::All)
         }
     }
+}
+
+/// `{"near": [x, y, z], "within": r}` (`within` optional, a positive number).
+fn near_selection(field: &str, near: &Map<String, Value>) -> Result<Selection> {
+    if let Some(extra) = near.keys().find(|k| *k != "near" && *k != "within") {
+        bail!("field `{field}`: unknown key `{extra}` (allowed: near, within)");
+    }
+    let f = Fields { map: near };
+    let point = f.vec3("near").with_context(|| format!("field `{field}`"))?;
+    let within = if near.contains_key("within") {
+        let r = f
+            .number("within")
+            .with_context(|| format!("field `{field}`"))?;
+        if r <= 0.0 {
+            bail!("field `{field}`: field `within`: must be positive, got {r}");
+        }
+        Some(r)
+    } else {
+        None
+    };
+    Ok(Selection::Near { point, within })
 }
 
 /// Parses one op. The error is the text that follows `op N` in the message: `: …` before the
@@ -269,9 +300,34 @@ pub fn parse_edits(bytes: &[u8], name: &str) -> Result<Vec<Op>> {
         .collect()
 }
 
-/// The indices a selection names, checked against the current slot count; `All` → every slot.
-fn resolve(selection: &Selection, count: usize) -> Result<Vec<usize>> {
+/// The indices a selection names among `slots` as they stand; `All` → every slot.
+fn resolve(selection: &Selection, slots: &[Slot]) -> Result<Vec<usize>> {
+    let count = slots.len();
     match selection {
+        Selection::Near { point, within } => {
+            let distance = |s: &Slot| (s.slot_to_world.w_axis.truncate() - *point).length();
+            let Some((nearest, d)) = slots.iter().map(distance).enumerate().fold(
+                None,
+                |best: Option<(usize, f64)>, (i, d)| match best {
+                    Some((_, b)) if b <= d => best,
+                    _ => Some((i, d)),
+                },
+            ) else {
+                bail!(
+                    "field `slots`: no slot near [{}, {}, {}]: there are no slots at this point",
+                    point.x,
+                    point.y,
+                    point.z
+                );
+            };
+            if let Some(r) = within.filter(|r| d > *r) {
+                bail!(
+                    "field `slots`: no slot within {r} of [{}, {}, {}] (the nearest, slot {nearest}, is {d:.3} away)",
+                    point.x, point.y, point.z
+                );
+            }
+            Ok(vec![nearest])
+        }
         Selection::All => Ok((0..count).collect()),
         Selection::Indices(list) => {
             if let Some(&bad) = list.iter().find(|&&i| i >= count) {
@@ -324,11 +380,10 @@ fn load_compatible(path: &str, codes: &Codes) -> Result<Codes> {
 
 /// Applies one op in place.
 pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
-    let count = codes.slots.len();
     match op {
         Op::Translate { slots, by } => {
             let t = DMat4::from_translation(*by);
-            for i in resolve(slots, count)? {
+            for i in resolve(slots, &codes.slots)? {
                 codes.slots[i].slot_to_world = t * codes.slots[i].slot_to_world;
             }
         }
@@ -339,12 +394,12 @@ pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
             pivot,
         } => {
             let r = rotation_about(*axis, *degrees, *pivot);
-            for i in resolve(slots, count)? {
+            for i in resolve(slots, &codes.slots)? {
                 codes.slots[i].slot_to_world = r * codes.slots[i].slot_to_world;
             }
         }
         Op::Delete { slots } => {
-            let doomed = resolve(slots, count)?;
+            let doomed = resolve(slots, &codes.slots)?;
             let mut index = 0;
             codes.slots.retain(|_| {
                 let keep = doomed.binary_search(&index).is_err();
@@ -353,12 +408,12 @@ pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
             });
         }
         Op::Keep { slots } => {
-            let kept = resolve(slots, count)?;
+            let kept = resolve(slots, &codes.slots)?;
             codes.slots = kept.iter().map(|&i| codes.slots[i].clone()).collect();
         }
         Op::Duplicate { slots, by } => {
             let t = DMat4::from_translation(*by);
-            for i in resolve(slots, count)? {
+            for i in resolve(slots, &codes.slots)? {
                 let mut copy: Slot = codes.slots[i].clone();
                 copy.slot_to_world = t * copy.slot_to_world;
                 codes.slots.push(copy);
@@ -366,7 +421,7 @@ pub fn apply_op(codes: &mut Codes, op: &Op) -> Result<()> {
         }
         Op::Merge { from, slots } => {
             let other = load_compatible(from, codes)?;
-            for i in resolve(slots, other.slots.len()).with_context(|| format!("in {from}"))? {
+            for i in resolve(slots, &other.slots).with_context(|| format!("in {from}"))? {
                 let mut slot = other.slots[i].clone();
                 if slot.source.is_empty() {
                     slot.source = format!("{from}#{i}");
@@ -526,6 +581,67 @@ mod tests {
         )
         .unwrap();
         assert!((origin(&e, 1) - DVec3::new(2.0, 5.0, 0.0)).length() < 1e-12);
+    }
+
+    /// A slot named by where it stands: the nearest frame origin, as the slots stand when the
+    /// op runs; `within` refuses a point with no slot close enough.
+    #[test]
+    fn slots_are_chosen_by_position() {
+        let codes = sample(4); // origins (i, 0, 0)
+        let e = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"delete","slots":{"near":[2.2,0.3,0]}},
+                     {"op":"translate","slots":{"near":[2.9,0,0],"within":0.5},"by":[0,4,0]}]"#),
+            "e",
+        )
+        .unwrap();
+        assert_eq!(e.slots.len(), 3);
+        assert!((origin(&e, 2) - DVec3::new(3.0, 4.0, 0.0)).length() < 1e-12);
+        // Ties go to the first slot.
+        let e = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"keep","slots":{"near":[0.5,0,0]}}]"#),
+            "e",
+        )
+        .unwrap();
+        assert_eq!(e.slots, vec![codes.slots[0].clone()]);
+        let far = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"delete","slots":{"near":[1,5,0],"within":2}}]"#),
+            "e",
+        )
+        .unwrap_err();
+        assert!(
+            format!("{far:#}")
+                .contains("no slot within 2 of [1, 5, 0] (the nearest, slot 1, is 5.000 away)"),
+            "{far:#}"
+        );
+        let none = apply_edits(
+            &sample(0),
+            &ops(r#"[{"op":"delete","slots":{"near":[0,0,0]}}]"#),
+            "e",
+        )
+        .unwrap_err();
+        assert!(
+            format!("{none:#}").contains("no slots at this point"),
+            "{none:#}"
+        );
+        for (text, why) in [
+            (
+                r#"[{"op":"delete","slots":{"near":[0,0]}}]"#,
+                "field `near`: expected an array of 3 numbers",
+            ),
+            (
+                r#"[{"op":"delete","slots":{"near":[0,0,0],"within":0}}]"#,
+                "must be positive",
+            ),
+            (
+                r#"[{"op":"delete","slots":{"near":[0,0,0],"radius":1}}]"#,
+                "unknown key `radius`",
+            ),
+        ] {
+            assert!(err(text).contains(why), "{}", err(text));
+        }
     }
 
     #[test]

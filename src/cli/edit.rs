@@ -14,7 +14,10 @@ use clap::Parser;
     about = "Edit the object slots of a colf codes file with a JSON script",
     long_about = "Apply a JSON list of edit ops to a codes file (from colf-encode) and write the \
 edited codes. Ops run in order; slot indices refer to the slots as they stand when the op runs; \
-\"slots\": \"all\" selects every slot; vectors are world units, angles degrees.\n\n\
+\"slots\": \"all\" selects every slot, and \"slots\": {\"near\": [x, y, z], \"within\": r} the one \
+slot whose frame origin (--inspect's `origin`) lies nearest that point (ties: the first; \"within\" \
+is optional and refuses a point with no slot that close), so a script can name an object by \
+where it stands; vectors are world units, angles degrees.\n\n\
 EDITS is {\"ops\": [...]} or a bare array of ops:\n\n\
   {\"op\": \"translate\", \"slots\": [2], \"by\": [1, 0, 0]}\n\n\
   {\"op\": \"rotate\", \"slots\": [1], \"axis\": [0, 0, 1], \"degrees\": 90, \"pivot\": [0, 0, 0]}\n\n\
