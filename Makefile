@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room-chair bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -92,7 +92,8 @@ man:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
 #   row 3: the same novel views after the edit;  row 4: their masks
-# $(call demo_steps,DIR,SYNTH_FLAGS,MODEL_FLAGS,EDITS): the demo's steps in DIR.
+# $(call demo_steps,DIR,SYNTH_FLAGS,MODEL_FLAGS,EDITS[,ORBIT_FLAGS]): the demo's steps in DIR;
+# ORBIT_FLAGS (colf-cameras orbit's) default to `--size 64` about the clevr567 cameras' circle.
 define demo_steps
 	@mkdir -p $(1)
 	$(RELEASE)/colf-synth $(2) --out $(1)/data --scenes 1 --seed 7 --split test -q --force
@@ -100,7 +101,7 @@ define demo_steps
 	  --camera $(1)/data/scene_00000/transforms.json --prune 0.001 -o $(1)/scene.codes
 	$(RELEASE)/colf-edit --inspect $(1)/scene.codes > $(1)/slots.json
 	$(RELEASE)/colf-edit $(4) $(1)/scene.codes -o $(1)/edited.codes
-	$(RELEASE)/colf-cameras orbit --frames 4 --size 64 --start-azimuth 20 -o $(1)/orbit.json
+	$(RELEASE)/colf-cameras orbit --frames 4 $(if $(5),$(5),--size 64) --start-azimuth 20 -o $(1)/orbit.json
 	$(RELEASE)/colf-render $(1)/scene.codes $(3) --cameras $(1)/orbit.json --out $(1)/orbit --masks -q
 	$(RELEASE)/colf-render $(1)/edited.codes $(3) --cameras $(1)/orbit.json --out $(1)/edited --masks -q
 	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(1)/sheet.png \
@@ -173,6 +174,14 @@ demo-city: build
 	  $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.png $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.mask.png
 	@cat $(CITY_DEMO)/traffic-time.txt
 	@echo "demo-city: renders in $(CITY_DEMO)/{drive,drive-edited,traffic}, contact sheet $(CITY_DEMO)/sheet.png"
+
+# The same demo on a held-out Room-Chair scene at 128² with the room-chair model (make
+# model-room-chair; ROOM_CHAIR_MODEL): the red chair moved, the green one deleted, both named
+# by where they stand (examples/demo-room-chair-edits.json), rendered about the room cameras'
+# circle (distance 8.5, elevation 35°).
+ROOM_CHAIR_MODEL ?= $(ROOM_RUN)/room-chair/r128.safetensors
+demo-room-chair: build
+	$(call demo_steps,out/demo-room-chair,--preset room-chair --size 128,--model $(ROOM_CHAIR_MODEL),examples/demo-room-chair-edits.json,--size 128 --radius 8.5 --elevation 35)
 
 # The `supervised` model's recipe (docs/training.md; runs in docs/training-log.md, "The supervised model"; it was the default
 # model until the unsupervised one matched it): clevr567 scenes at 64², 100 held
@@ -439,15 +448,22 @@ model-room-diverse: build
 # City-Block (issue 39; docs/training.md, "The city model"): the paper's recipe. c0: a static
 # background field pretrained alone on the street (K = 0 slots; the bundled default model's
 # image-reading background is discarded for it, its foreground kept). c1 (64²) and c2 (128²):
-# the default model's foreground slots on top, L2 only — the static background cannot draw the
-# cars, which differ from scene to scene, so the slots must. Unlabelled colf-synth city-block
+# the default model's foreground slots on top; the static background cannot draw the cars,
+# which differ from scene to scene, so the slots must, and object proposals made against c0's
+# render of the street (not labels) tell the mask losses which pixels are cars (the paper: L2
+# only; with it the slots took a third of the car pixels in 16,000 steps, docs/training-log.md).
+# Unlabelled colf-synth city-block
 # scenes (the paper's 500; mask files deleted); held-out: 16 validation scenes as it trains,
 # 100 test scenes at 128² at the end, encoded from the two context views and scored on views 2
 # and 3. Data, checkpoints and logs in $(CITY_RUN); re-running resumes. One thread:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-city > LOG 2>&1 &
 CITY_RUN ?= $(HOME)/colf-runs/city
-CITY_COMMON := --mask-weight 0 --attention-mask-weight 0 --object-fraction 0 --views 4 \
-  --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16 --seed 91
+CITY_COMMON := --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 \
+  --eval-scenes 16 --seed 91
+# The slots' stages (c1, c2) learn the cars from object proposals made against c0's street: what
+# a view adds to c0's render of it, in hue, is a car (docs/training.md).
+CITY_PROPOSALS := --proposals-against $(CITY_RUN)/c0.safetensors --mask-weight 0.1 \
+  --attention-mask-weight 0.1 --object-fraction 0.2
 # The test protocol: encoded from the two context views, scored on the two street views.
 CITY_EVAL := --input-views 0,1 --novel-views 2,3
 CITY_BACKGROUND := --set static_background=true --set zero_background=true --set background_reader=false
@@ -466,17 +482,18 @@ model-city: build
 	test -d $(CITY_RUN)/data/test128 || $(RELEASE)/colf-synth --preset city-block \
 	  --out $(CITY_RUN)/data/test128 --scenes 100 --split test --size 128 -q
 	test -f $(CITY_RUN)/c1.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(CITY_COMMON) --slots 0 --data $(CITY_RUN)/data/train \
+	$(RELEASE)/colf-train $(CITY_COMMON) --slots 0 --mask-weight 0 --attention-mask-weight 0 \
+	  --object-fraction 0 --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c0.safetensors \
 	  --steps 30000 --lr 1e-3 --warmup 200 --decay-from 20000 --final-lr 1e-4 \
 	  $(if $(wildcard $(CITY_RUN)/c0.safetensors.ckpt),--resume,--init models/default.safetensors $(CITY_BACKGROUND))
 	test -f $(CITY_RUN)/c2.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train \
+	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
 	  --steps 60000 --lr 5e-5 --warmup 200 --decay-from 45000 --final-lr 1e-5 \
 	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors) \
 	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
-	$(RELEASE)/colf-train $(CITY_COMMON) --data $(CITY_RUN)/data/train128 \
+	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) --data $(CITY_RUN)/data/train128 \
 	  --eval-data $(CITY_RUN)/data/val128 --out $(CITY_RUN)/c2.safetensors \
 	  --steps 50000 --lr 2e-5 --warmup 100 --decay-from 35000 --final-lr 2e-6 \
 	  $(call resume_or_init,$(CITY_RUN)/c2.safetensors,$(CITY_RUN)/c1.safetensors)

@@ -106,17 +106,62 @@ impl Default for ProposalParams {
 /// Proposal ids of `image`, row-major: 0 background, 1…254 instances from the largest, and
 /// [`UNSURE`]. Instances past 254 (never seen in practice) are [`UNSURE`].
 pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
-    let (w, h) = (image.w as usize, image.h as usize);
-    let n = w * h;
-    if n == 0 {
+    if image.data.is_empty() {
         return Vec::new();
     }
     let chroma = chromaticities(image);
+    let background = background_layers(image, &chroma, params);
+    instances(image, &chroma, &background, params)
+}
+
+/// Proposal ids of `image` (as [`propose`]'s) against a known background: `background` is
+/// what the view shows without its objects (RGB, row-major, the image's size), for scenes
+/// whose background does not change — a static background field rendered at the view's camera
+/// (the city's street). A pixel is an object candidate where it differs from that render by
+/// more than `params.threshold` in some channel *and* in chromaticity by more than
+/// `render_hue` (the render is a little blurred, so a building's edge differs in brightness but
+/// not in hue); other differences (edges, a car's shadow, a grey car) are [`UNSURE`].
+/// Instances are then grouped as in [`propose`].
+pub fn propose_against(
+    image: &RgbImage32,
+    background: &[f32],
+    render_hue: f32,
+    params: &ProposalParams,
+) -> anyhow::Result<Vec<u8>> {
+    if background.len() != image.data.len() {
+        anyhow::bail!(
+            "object proposals: the background render has {} values, the {}x{} image {}",
+            background.len(),
+            image.w,
+            image.h,
+            image.data.len()
+        );
+    }
+    let n = background.len() / 3;
+    let known = Background {
+        colour: background.to_vec(),
+        // Any brightness difference within the same hue is left unsure, not background.
+        tolerance: vec![f32::INFINITY; n],
+        chroma_tolerance: vec![render_hue; n],
+    };
+    Ok(instances(image, &chromaticities(image), &known, params))
+}
+
+/// Steps 2–4 of the recipe (module docs) on a view's `background`: candidates, lighting,
+/// instances.
+fn instances(
+    image: &RgbImage32,
+    chroma: &[[f32; 3]],
+    background: &Background,
+    params: &ProposalParams,
+) -> Vec<u8> {
+    let (w, h) = (image.w as usize, image.h as usize);
+    let n = w * h;
     let Background {
         colour: background,
         tolerance,
         chroma_tolerance,
-    } = background_layers(image, &chroma, params);
+    } = background;
     let data = &image.data;
     let mut object = vec![false; n];
     let mut ids = vec![0u8; n];
@@ -130,7 +175,7 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
             continue;
         }
         let other_hue =
-            chroma_distance(image, p, &background).is_some_and(|d| d > chroma_tolerance[p]);
+            chroma_distance(image, p, background).is_some_and(|d| d > chroma_tolerance[p]);
         if distance <= tolerance[p] && !other_hue {
             // Within the grain of a textured surface: maybe an object of its colour, maybe
             // the surface; left to the colour loss.
@@ -152,7 +197,7 @@ pub fn propose(image: &RgbImage32, params: &ProposalParams) -> Vec<u8> {
         }
     }
     let min_area = ((params.min_area as f64 * n as f64).ceil() as usize).max(1);
-    let fragments = components_8(&object, w, h, |p, q| same_chroma(&chroma, p, q, params));
+    let fragments = components_8(&object, w, h, |p, q| same_chroma(chroma, p, q, params));
     let merge_below = (params.merge_below as f64 * n as f64).ceil() as usize;
     let mut components = merge_fragments(fragments, w, h, merge_below);
     // Largest first; ties by the first pixel, so the numbering is deterministic.
@@ -691,6 +736,55 @@ mod tests {
                 [floor; 3]
             }
         })
+    }
+
+    /// Against a known background: a different hue is an object, the same hue darker or
+    /// brighter (a blurred edge, a shadow) is unsure, the background itself is background.
+    #[test]
+    fn proposals_against_a_known_background() {
+        let (w, h) = (20usize, 12usize);
+        // A grey street with a brightness ramp.
+        let background: Vec<f32> = (0..w * h)
+            .flat_map(|p| {
+                let v = 0.35 + 0.3 * (p % w) as f32 / w as f32;
+                [v, v, v * 1.05]
+            })
+            .collect();
+        let mut data = background.clone();
+        for y in 3..7 {
+            for x in 2..6 {
+                data[3 * (y * w + x)..3 * (y * w + x) + 3].copy_from_slice(&[0.2, 0.3, 0.8]);
+            }
+            for x in 12..15 {
+                for c in 0..3 {
+                    data[3 * (y * w + x) + c] *= 0.6;
+                }
+            }
+        }
+        let image = RgbImage32 {
+            w: w as u32,
+            h: h as u32,
+            data,
+        };
+        let params = ProposalParams {
+            threshold: 0.1,
+            ring: 0,
+            ..ProposalParams::default()
+        };
+        let ids = propose_against(&image, &background, 0.03, &params).unwrap();
+        for y in 0..h {
+            for x in 0..w {
+                let want = if (3..7).contains(&y) && (2..6).contains(&x) {
+                    1
+                } else if (3..7).contains(&y) && (12..15).contains(&x) {
+                    UNSURE
+                } else {
+                    0
+                };
+                assert_eq!(ids[y * w + x], want, "({x}, {y})");
+            }
+        }
+        assert!(propose_against(&image, &background[3..], 0.03, &params).is_err());
     }
 
     #[test]

@@ -138,6 +138,14 @@ pub struct RunArgs {
     #[arg(long)]
     pub proposals: bool,
 
+    /// With scenes that share one background (the city's street): make the object proposals
+    /// against MODEL's background — a model whose background does not depend on the image, such
+    /// as a static background field trained alone — rendered at each view's camera: pixels that
+    /// differ from that render in hue are objects, those that differ only in brightness (a
+    /// blurred edge, a shadow) are left to the colour loss. Implies --proposals.
+    #[arg(long, value_name = "MODEL")]
+    pub proposals_against: Option<std::path::PathBuf>,
+
     /// Mask losses (--mask-weight, --attention-mask-weight) ignore background pixels within PX
     /// pixels of an object: masks call an object's shadow background, but only the object's slot
     /// can draw it when the background cannot depend on the image (--zero-background).
@@ -286,6 +294,10 @@ pub struct ProposeArgs {
     /// Write each view's proposals as OUT/SCENE/STEM.proposal.png.
     #[arg(long, value_name = "DIR")]
     pub out: Option<std::path::PathBuf>,
+
+    /// Propose against MODEL's background render instead (as `colf-train --proposals-against`).
+    #[arg(long, value_name = "MODEL")]
+    pub against: Option<std::path::PathBuf>,
 }
 
 /// Runs `colf-train propose`.
@@ -294,12 +306,25 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
     let data = crate::dataset::Dataset::open(&args.data)?;
     let n = args.scenes.map_or(data.len(), |m| m.min(data.len()));
     let params = ProposalParams::default();
+    let known = args
+        .against
+        .as_deref()
+        .map(crate::train::known_background::KnownBackground::load)
+        .transpose()?;
     let (mut scores, mut views, mut instances) = (Vec::new(), 0usize, 0usize);
     for i in 0..n {
         let scene = data.load(i)?;
         for view in &scene.views {
-            // Made from the image alone; the mask, where there is one, only scores them.
-            let ids = propose(&view.image, &params);
+            // Made from the image alone (and the known background); the mask, where there is
+            // one, only scores them.
+            let ids = match &known {
+                Some(known) => {
+                    anyhow::Context::with_context(known.propose(&view.image, &view.frame), || {
+                        view.path.display().to_string()
+                    })?
+                }
+                None => propose(&view.image, &params),
+            };
             instances += ids
                 .iter()
                 .filter(|&&id| is_instance(id))
@@ -592,7 +617,8 @@ impl RunArgs {
             max_scenes: args.max_scenes,
             freeze: args.freeze.clone(),
             lr_scale: args.lr_scale.clone(),
-            proposals: args.proposals,
+            proposals: args.proposals || args.proposals_against.is_some(),
+            proposals_against: args.proposals_against.clone(),
             reference_decoder: args.reference_decoder,
         })
     }

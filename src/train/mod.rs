@@ -5,5 +5,6 @@
 pub mod average;
 pub mod batch;
 pub mod init;
+pub mod known_background;
 pub mod plot;
 pub mod trainer;

@@ -5,6 +5,7 @@
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
 use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
+use super::known_background::KnownBackground;
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
@@ -112,6 +113,10 @@ pub struct TrainOptions {
     /// objects use the proposals (ids local to each view).
     #[serde(default)]
     pub proposals: bool,
+    /// With `proposals`: propose objects against this model's background, rendered alone at
+    /// each view's camera ([`super::known_background`]), instead of against a fitted floor.
+    #[serde(default)]
+    pub proposals_against: Option<PathBuf>,
     /// Parameters whose names start with one of these are not updated (e.g. `encoder.` and
     /// `slot_attention.`, to adapt the decoder to a new look while keeping how slots group).
     #[serde(default)]
@@ -174,6 +179,9 @@ impl TrainOptions {
         }
         if !(0.0..=1.0).contains(&self.mask_shadow_depth) {
             bail!("the mask shadow depth must be in [0, 1]");
+        }
+        if self.proposals_against.is_some() && !self.proposals {
+            bail!("proposals against a known background need proposals");
         }
         Ok(())
     }
@@ -248,7 +256,13 @@ fn step_rng(seed: u64, step: u64) -> StdRng {
 
 /// The first `max` scenes of the training data; with `proposals`, their mask files are never
 /// read, and each view's mask is its object proposals instead.
-fn load_scenes(path: &Path, max: Option<usize>, proposals: bool) -> Result<Vec<SceneData>> {
+/// With `against`, the proposals are made against that model's background render.
+fn load_scenes(
+    path: &Path,
+    max: Option<usize>,
+    proposals: bool,
+    against: Option<&Path>,
+) -> Result<Vec<SceneData>> {
     let mut data = Dataset::open(path)?;
     if data.is_empty() {
         bail!("{}: no scenes found", path.display());
@@ -258,12 +272,18 @@ fn load_scenes(path: &Path, max: Option<usize>, proposals: bool) -> Result<Vec<S
     }
     let n = max.map_or(data.len(), |m| m.min(data.len()));
     let params = ProposalParams::default();
+    let known = against.map(KnownBackground::load).transpose()?;
     (0..n)
         .map(|i| {
             let mut scene = data.load(i)?;
             if proposals {
                 for view in &mut scene.views {
-                    view.mask = Some(proposals::propose(&view.image, &params));
+                    view.mask = Some(match &known {
+                        Some(known) => known
+                            .propose(&view.image, &view.frame)
+                            .with_context(|| view.path.display().to_string())?,
+                        None => proposals::propose(&view.image, &params),
+                    });
                 }
                 scene.view_local_ids = true;
             }
@@ -276,7 +296,12 @@ impl Trainer {
     /// A new run, or (`resume`) the run saved in `opts.checkpoint_path()`.
     pub fn new(opts: TrainOptions, resume: bool) -> Result<Trainer> {
         opts.validate()?;
-        let data = load_scenes(&opts.data, opts.max_scenes, opts.proposals)?;
+        let data = load_scenes(
+            &opts.data,
+            opts.max_scenes,
+            opts.proposals,
+            opts.proposals_against.as_deref(),
+        )?;
         let (colf, adam_state, step, bad_steps, earlier_runs, init_identity) = if resume {
             let path = opts.checkpoint_path();
             let bytes = std::fs::read(&path).with_context(|| {
