@@ -552,6 +552,45 @@ fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
         1,
         "nowhere",
     );
+
+    // Against a known background (a model whose background does not depend on the image, here
+    // the zero-background model just trained): scored the same way, and trained on.
+    let summary = json_of(
+        common::bin("colf-train")
+            .args(["propose", "--data"])
+            .arg(&data)
+            .arg("--against")
+            .arg(&on_unlabelled),
+    );
+    assert_eq!(summary["views"], summary["views_with_masks"]);
+    assert!(summary["fg_ari"].as_f64().is_some(), "{summary}");
+    let against = dir.path().join("a.safetensors");
+    let street = on_unlabelled.to_str().unwrap();
+    train(
+        &unlabelled,
+        &against,
+        5,
+        &[
+            "--proposals-against",
+            street,
+            "--mask-weight",
+            "0.1",
+            "--zero-background",
+        ],
+    );
+    let run = &info(&against)["training"][0];
+    assert_eq!(run["proposals"], true);
+    assert_eq!(run["masks_in_data"], false);
+    // A background that reads the image is no known background: one error line.
+    common::fails_with(
+        common::bin("colf-train")
+            .args(["propose", "--data"])
+            .arg(&data)
+            .args(["--against", "models/default.safetensors"]),
+        "train",
+        1,
+        "depends on the image",
+    );
 }
 
 #[test]
