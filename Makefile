@@ -399,9 +399,44 @@ PAPER_RUN ?= $(HOME)/colf-runs/paper
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
   --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3 \
   --set hypernet_hidden=64
+# After the default model's stages (about 83,000 steps at 64² in all), the rest of the paper's
+# schedule — its 150,000 iterations at 64², then 60,000 at 128², Adam 5e-5 — on model-both's mix
+# of looks (Blender, analytic and randomised scenes, no labels): p6 to 150,000 steps at 64², then
+# p7 at 128² on the same mix rendered at 128². Scored at the end on 100 held-out 128² scenes of
+# each look ($(PAPER_RUN)/p7-{analytic,blender}128{,-fast}.json), its curves in
+# $(PAPER_RUN)/training.png.
+PAPER_LATE := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
+  --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
+PAPER_128 := $(PAPER_RUN)/data128
 model-paper: build
 	$(MAKE) model-unsupervised UNSUP_RUN=$(PAPER_RUN)/unsup UNSUP_SETS='$(PAPER_DECODER)'
 	$(MAKE) model-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both BOTH_INSTALL=
+	test -f $(PAPER_RUN)/p7.safetensors.ckpt || \
+	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_RUN)/both/data/mix \
+	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 67000 \
+	  --lr 5e-5 --warmup 200 --decay-from 50000 --final-lr 1e-5 --seed 71 \
+	  $(call resume_or_init,$(PAPER_RUN)/p6.safetensors,$(PAPER_RUN)/both/model.safetensors)
+	@mkdir -p $(PAPER_128)
+	$(call unlabelled_set,$(PAPER_128)/blender,600,--engine blender --size 128)
+	$(call unlabelled_set,$(PAPER_128)/analytic,600,--size 128)
+	$(call unlabelled_set,$(PAPER_128)/randomised,400,--randomize-look --seed 51 --size 128)
+	test -d $(PAPER_128)/val || $(RELEASE)/colf-synth --engine blender --out $(PAPER_128)/val \
+	  --scenes 16 --seed 7 --size 128 -q
+	test -d $(PAPER_128)/test-analytic || $(RELEASE)/colf-synth --out $(PAPER_128)/test-analytic \
+	  --scenes 100 --split test --size 128 -q
+	test -d $(PAPER_128)/mix || scripts/mix_scenes.sh $(PAPER_128)/mix b:$(PAPER_128)/blender:600 \
+	  a:$(PAPER_128)/analytic:600 r:$(PAPER_128)/randomised:400
+	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
+	  --out $(PAPER_RUN)/p7.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
+	  --final-lr 5e-6 --seed 72 \
+	  $(call resume_or_init,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p6.safetensors)
+	$(RELEASE)/colf-train plot $(foreach s,u1 u2 u3 u4 u5,$(PAPER_RUN)/unsup/$(s).safetensors.log.jsonl) \
+	  $(PAPER_RUN)/both/model.safetensors.log.jsonl $(PAPER_RUN)/p6.safetensors.log.jsonl \
+	  $(PAPER_RUN)/p7.safetensors.log.jsonl -o $(PAPER_RUN)/training.png
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-analytic128.json)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-analytic128-fast.json,--fast)
+	$(call eval_json,$(PAPER_RUN)/both/data/test128,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-blender128.json)
+	$(call eval_json,$(PAPER_RUN)/both/data/test128,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-blender128-fast.json,--fast)
 
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the bundled
 # default model adapted to each room set without labels, the paper's curriculum — 128,000 steps
