@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room-chair bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -174,14 +174,6 @@ demo-city: build
 	  $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.png $(CITY_DEMO)/traffic/frame_000{0,1,2,3,4,5}.mask.png
 	@cat $(CITY_DEMO)/traffic-time.txt
 	@echo "demo-city: renders in $(CITY_DEMO)/{drive,drive-edited,traffic}, contact sheet $(CITY_DEMO)/sheet.png"
-
-# The same demo on a held-out Room-Chair scene at 128² with the room-chair model (make
-# model-room-chair; ROOM_CHAIR_MODEL): the red chair moved, the green one deleted, both named
-# by where they stand (examples/demo-room-chair-edits.json), rendered about the room cameras'
-# circle (distance 8.5, elevation 35°).
-ROOM_CHAIR_MODEL ?= $(ROOM_RUN)/room-chair/r128.safetensors
-demo-room-chair: build
-	$(call demo_steps,out/demo-room-chair,--preset room-chair --size 128,--model $(ROOM_CHAIR_MODEL),examples/demo-room-chair-edits.json,--size 128 --radius 8.5 --elevation 35)
 
 # The `supervised` model's recipe (docs/training.md; runs in docs/training-log.md, "The supervised model"; it was the default
 # model until the unsupervised one matched it): clevr567 scenes at 64², 100 held
