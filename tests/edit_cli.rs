@@ -32,7 +32,8 @@ fn pipe_edit_into_inspect() {
     let edits = write(
         dir.path(),
         "e.json",
-        br#"[{"op":"translate","slots":"all","by":[0,0,1]},{"op":"delete","slots":[0]}]"#,
+        br#"[{"op":"translate","slots":"all","by":[0,0,1]},{"op":"delete","slots":[0]},
+             {"op":"translate","slots":{"near":[2.2,0.1,1],"within":0.5},"by":[0,4,0]}]"#,
     );
     let edited = edit()
         .arg(&edits)
@@ -54,6 +55,11 @@ fn pipe_edit_into_inspect() {
         serde_json::json!([1.0, 0.0, 1.0])
     );
     assert_eq!(summary["slots"][1]["source"], "s.png#2");
+    // The slot named by where it stood moved, the other did not.
+    assert_eq!(
+        summary["slots"][1]["origin"],
+        serde_json::json!([2.0, 4.0, 1.0])
+    );
 }
 
 #[test]
@@ -86,7 +92,7 @@ fn bad_edits_write_nothing_and_keep_existing_output() {
     let codes = write(dir.path(), "in.codes", &sample(2, "m").to_bytes().unwrap());
     let out = dir.path().join("out.codes");
     std::fs::write(&out, b"precious").unwrap();
-    let cases: [(&[u8], &str); 5] = [
+    let cases: [(&[u8], &str); 6] = [
         (
             br#"[{"op":"translate","slots":[0],"by":[1,"x",0]}]"#,
             "op 0 (translate): field `by`",
@@ -101,6 +107,10 @@ fn bad_edits_write_nothing_and_keep_existing_output() {
             "op 0 (merge): field `from`",
         ),
         (br#"[{"op":"explode"}]"#, "unknown op `explode`"),
+        (
+            br#"[{"op":"delete","slots":{"near":[0,3,0],"within":1}}]"#,
+            "op 0 (delete): field `slots`: no slot within 1 of [0, 3, 0] (the nearest, slot 0, is 3.000 away)",
+        ),
     ];
     for (text, needle) in cases {
         let edits = write(dir.path(), "e.json", text);
