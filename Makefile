@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -125,6 +125,28 @@ demo: build
 # large cyan one leaves a faint cyan haze (docs/training-log.md, run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
+
+# A contact sheet of held-out scenes (issue 37): per scene a row of its four ground-truth views
+# then the model's renders of them (view 0 encoded with the model's default encoding, views 1–3
+# novel), and below it a row of their masks (ground truth, then one colour a slot). SHEET_MODEL
+# on SHEET_SCENES test scenes at 128² from SHEET_ENGINE (blender, the default, or analytic);
+# colf-eval's scores of those scenes in $(SHEET_DIR)/eval.json; the sheet is SHEET_OUT.
+SHEET_ENGINE ?= blender
+SHEET_MODEL ?= models/default.safetensors
+SHEET_SCENES ?= 3
+SHEET_DIR := out/eval-sheet
+SHEET_OUT ?= $(SHEET_DIR)/sheet.png
+eval-sheet: build
+	$(RELEASE)/colf-synth --engine $(SHEET_ENGINE) --split test --size 128 --scenes $(SHEET_SCENES) \
+	  --out $(SHEET_DIR)/data -q --force
+	$(RELEASE)/colf-eval --data $(SHEET_DIR)/data --model $(SHEET_MODEL) \
+	  --renders $(SHEET_DIR)/renders > $(SHEET_DIR)/eval.json
+	$(RELEASE)/colf-sheet --cols 8 --scale 2 -o $(SHEET_OUT) $$(for s in $$(ls $(SHEET_DIR)/data | grep '^scene_'); do \
+	  for kind in png mask.png; do \
+	    for v in 0 1 2 3; do printf '%s ' $(SHEET_DIR)/data/$$s/view_00$$v.$$kind; done; \
+	    for v in 0 1 2 3; do printf '%s ' $(SHEET_DIR)/renders/$${s}_v$$v.$$kind; done; \
+	  done; done)
+	@echo "eval-sheet: $(SHEET_OUT) (scores in $(SHEET_DIR)/eval.json)"
 
 # The city demo (issue 39): CITY_STREETS held-out city-block streets at 128², each encoded from
 # its two context views into one scene (one background, one slot a car: colf-encode matches the
