@@ -163,6 +163,7 @@ CITY_STREETS ?= 16
 CITY_MODEL ?= $(CITY_RUN)/c2.safetensors
 CITY_DRIVE := --from 40,0,1.3 --to 108,0,1.3 --look-at 70,0,0.5 --look-at-end 140,0,0.5
 demo-city: build
+	test -f $(CITY_MODEL) || { echo "demo-city: no city model at $(CITY_MODEL): run make model-city first, or set CITY_MODEL" >&2; exit 1; }
 	$(CARGO) build --release --example city_traffic
 	@mkdir -p $(CITY_DEMO)
 	$(RELEASE)/colf-synth --preset city-block --split test --scenes $(CITY_STREETS) --seed 7 \
