@@ -306,13 +306,13 @@ fn resolve(selection: &Selection, slots: &[Slot]) -> Result<Vec<usize>> {
     match selection {
         Selection::Near { point, within } => {
             let distance = |s: &Slot| (s.slot_to_world.w_axis.truncate() - *point).length();
-            let Some((nearest, d)) = slots.iter().map(distance).enumerate().fold(
-                None,
-                |best: Option<(usize, f64)>, (i, d)| match best {
-                    Some((_, b)) if b <= d => best,
-                    _ => Some((i, d)),
-                },
-            ) else {
+            // `min_by` keeps the first of equal minima.
+            let Some((nearest, d)) = slots
+                .iter()
+                .map(distance)
+                .enumerate()
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+            else {
                 bail!(
                     "field `slots`: no slot near [{}, {}, {}]: there are no slots at this point",
                     point.x,

@@ -302,7 +302,7 @@ pub struct ProposeArgs {
 
 /// Runs `colf-train propose`.
 pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
-    use crate::proposals::{is_instance, propose, score, ProposalParams};
+    use crate::proposals::{is_instance, score, ProposalParams};
     let data = crate::dataset::Dataset::open(&args.data)?;
     let n = args.scenes.map_or(data.len(), |m| m.min(data.len()));
     let params = ProposalParams::default();
@@ -317,14 +317,8 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
         for view in &scene.views {
             // Made from the image alone (and the known background); the mask, where there is
             // one, only scores them.
-            let ids = match &known {
-                Some(known) => {
-                    anyhow::Context::with_context(known.propose(&view.image, &view.frame), || {
-                        view.path.display().to_string()
-                    })?
-                }
-                None => propose(&view.image, &params),
-            };
+            let ids =
+                crate::train::known_background::view_proposals(known.as_ref(), view, &params)?;
             instances += ids
                 .iter()
                 .filter(|&&id| is_instance(id))

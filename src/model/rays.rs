@@ -215,10 +215,7 @@ impl HostRays {
         for (bi, scene) in scenes.iter().enumerate() {
             // 2. Each field's frame: the background's is the world.
             let inverses = check(bi, scene)?;
-            let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
-            for (inv, m) in inverses.iter().zip(scene.slot_to_world) {
-                frames.push((*inv, m.w_axis.truncate()));
-            }
+            let frames = field_frames(&inverses, scene.slot_to_world);
             // 3. The camera rays in each field's frame.
             let per_scene = s * r * in_dim;
             let camera_lines: Vec<(DVec3, DVec3)> = scene
@@ -337,13 +334,7 @@ impl HostRays {
         for (bi, scene) in scenes.iter().enumerate() {
             let inverses = check(bi, scene)?;
             // The background's shift moves with the nearest frame's along = (t − o)·d̂.
-            let mut frames = vec![(DMat4::IDENTITY, DVec3::ZERO)];
-            frames.extend(
-                inverses
-                    .iter()
-                    .zip(scene.slot_to_world)
-                    .map(|(inv, m)| (*inv, m.w_axis.truncate())),
-            );
+            let frames = field_frames(&inverses, scene.slot_to_world);
             for ri in 0..r {
                 let d_hat = scene.dirs[ri].normalize();
                 if let Some(nearest) = background_anchor(cfg, &frames, scene.origins[ri], d_hat) {
@@ -399,6 +390,18 @@ impl HostRays {
             background_follows,
         })
     }
+}
+
+/// Each field's frame (world-to-field, origin), the background's first: the world's.
+fn field_frames(inverses: &[DMat4], slot_to_world: &[DMat4]) -> Vec<(DMat4, DVec3)> {
+    std::iter::once((DMat4::IDENTITY, DVec3::ZERO))
+        .chain(
+            inverses
+                .iter()
+                .zip(slot_to_world)
+                .map(|(inv, m)| (*inv, m.w_axis.truncate())),
+        )
+        .collect()
 }
 
 /// A batch's scenes, slots and rays, refused unless every scene has the same (and some rays).

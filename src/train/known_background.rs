@@ -6,6 +6,7 @@
 
 use crate::camera::Frame;
 use crate::codes::Codes;
+use crate::dataset::View;
 use crate::image_io::RgbImage32;
 use crate::model::Colf;
 use crate::proposals::{propose_against, ProposalParams};
@@ -76,6 +77,21 @@ impl KnownBackground {
             );
         }
         propose_against(image, &self.render(frame)?, RENDER_HUE, &self.params)
+    }
+}
+
+/// A view's object proposals: against `known`'s background where there is one, else against
+/// the fitted floor ([`crate::proposals::propose`] with `params`). Errors name the view's file.
+pub fn view_proposals(
+    known: Option<&KnownBackground>,
+    view: &View,
+    params: &ProposalParams,
+) -> Result<Vec<u8>> {
+    match known {
+        Some(known) => known
+            .propose(&view.image, &view.frame)
+            .with_context(|| view.path.display().to_string()),
+        None => Ok(crate::proposals::propose(&view.image, params)),
     }
 }
 

@@ -5,14 +5,14 @@
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
 use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
-use super::known_background::KnownBackground;
+use super::known_background::{view_proposals, KnownBackground};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
 use crate::model::history::{self, TrainingRun};
 use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
 use crate::optim::{Adam, AdamConfig};
-use crate::proposals::{self, is_instance, ProposalParams};
+use crate::proposals::{is_instance, ProposalParams};
 use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{DType, Tensor, D};
@@ -278,12 +278,7 @@ fn load_scenes(
             let mut scene = data.load(i)?;
             if proposals {
                 for view in &mut scene.views {
-                    view.mask = Some(match &known {
-                        Some(known) => known
-                            .propose(&view.image, &view.frame)
-                            .with_context(|| view.path.display().to_string())?,
-                        None => proposals::propose(&view.image, &params),
-                    });
+                    view.mask = Some(view_proposals(known.as_ref(), view, &params)?);
                 }
                 scene.view_local_ids = true;
             }
