@@ -225,3 +225,46 @@ fn masked_fields_get_no_weight_and_the_background_is_required() {
     assert!(r.render(&origins, &dirs, None, Some(&mask)).is_err());
     assert!(r.render(&origins, &dirs, Some(32), None).is_err());
 }
+
+#[test]
+fn subsets_composited_from_fields_evaluated_once_equal_masked_renders() {
+    // Shadows along a light and Fourier features: every value the composition reads is kept;
+    // 600 rays span three chunks, the last one short.
+    let overrides = [
+        "shadow_head=true",
+        "shadow_light=[30, 55]",
+        "ray_fourier_freqs=4",
+    ]
+    .map(String::from);
+    let cfg = Config::small().with_overrides(&overrides).unwrap();
+    let model = Colf::init(&cfg, 3).unwrap();
+    let k = 4;
+    let latents: Vec<Vec<f32>> = (0..k).map(|i| noise(cfg.slot_dim, 20 + i as u64)).collect();
+    let prepared = model.prepare(&latents, &noise(cfg.slot_dim, 8)).unwrap();
+    let (frames, origins, dirs) = scene(k, 600);
+    let r = FastRenderer::new(&model, &prepared, &frames).unwrap();
+    let values = r.evaluate_fields(&origins, &dirs).unwrap();
+    for keep in [
+        vec![true; k + 1],
+        vec![true, false, true, true, true],
+        vec![true, true, false, false, true],
+        vec![true, false, false, false, false],
+    ] {
+        let mask = keep.repeat(origins.len());
+        let rendered = r.render(&origins, &dirs, None, Some(&mask)).unwrap();
+        let composited = r.composite(&values, &keep).unwrap();
+        assert_eq!(rendered.rgb, composited.rgb, "{keep:?}");
+        assert_eq!(rendered.weights, composited.weights, "{keep:?}");
+        assert_eq!(rendered.shadow, composited.shadow, "{keep:?}");
+        let same_ordering = rendered
+            .ordering
+            .iter()
+            .zip(&composited.ordering)
+            .all(|(a, b)| a == b || (a.is_infinite() && b.is_infinite()));
+        assert!(same_ordering, "{keep:?}");
+    }
+    assert!(r
+        .composite(&values, &[false, true, true, true, true])
+        .is_err());
+    assert!(r.composite(&values, &[true; 3]).is_err());
+}

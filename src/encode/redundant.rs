@@ -27,17 +27,24 @@ pub fn drop_redundant_slots(
         return Ok(slots);
     }
     let (latents, frames) = latents_and_frames(&slots);
-    // Light fields: the hypernetworks run once, and a subset is rendered by leaving the other
-    // slots out of every ray's composition (the fast renderer's `active` mask: the same as
-    // deleting them). The volumetric baseline has no such mask and renders each subset anew.
-    let renderer = if model.config().is_volumetric() {
+    // Light fields: the hypernetworks run once and every field is evaluated once per view; a
+    // subset is then only composited, the other slots left out of every ray's composition (the
+    // same as deleting them). The volumetric baseline has no such composition and renders each
+    // subset anew.
+    let evaluated = if model.config().is_volumetric() {
         None
     } else {
         let prepared = model.prepare(&latents, background)?;
-        Some(FastRenderer::new(model, &prepared, &frames)?)
+        let renderer = FastRenderer::new(model, &prepared, &frames)?;
+        let values = views
+            .iter()
+            .map(|v| renderer.evaluate_fields(&v.compared.origins, &v.compared.dirs))
+            .collect::<Result<Vec<_>>>()?;
+        Some((renderer, values))
     };
-    let error_on = |view: &InputView, keep: &[bool]| -> Result<f64> {
-        let Some(renderer) = &renderer else {
+    let error_on = |vi: usize, keep: &[bool]| -> Result<f64> {
+        let view = views[vi];
+        let Some((renderer, values)) = &evaluated else {
             let (latents, frames): (Vec<_>, Vec<_>) = latents
                 .iter()
                 .zip(&frames)
@@ -47,16 +54,14 @@ pub fn drop_redundant_slots(
                 .unzip();
             return view.mse(model, &latents, background, &frames);
         };
-        let pixels = &view.compared;
         let fields: Vec<bool> = std::iter::once(true).chain(keep.iter().copied()).collect();
-        let active = fields.repeat(pixels.origins.len());
-        let out = renderer.render(&pixels.origins, &pixels.dirs, None, Some(&active))?;
-        Ok(pixels.mse(&out.rgb))
+        let out = renderer.composite(&values[vi], &fields)?;
+        Ok(view.compared.mse(&out.rgb))
     };
     let error_of = |keep: &[bool]| -> Result<f64> {
         let mut total = 0.0;
-        for view in views {
-            total += error_on(view, keep)?;
+        for vi in 0..views.len() {
+            total += error_on(vi, keep)?;
         }
         Ok(total / views.len() as f64)
     };

@@ -22,6 +22,7 @@ use candle_core::{CpuStorage, CustomOp2, Layout, Shape, Tensor, Var};
 use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use rayon::prelude::*;
 
 /// How to refine (serialised as is into colf-eval's JSON, so a refined score says how it was
 /// made).
@@ -460,31 +461,20 @@ impl Pixels {
             origins: &o,
             dirs: &d,
         }];
-        let (mut d_coords, mut d_lines, mut d_shift) = (Vec::new(), Vec::new(), Vec::new());
-        let mut background_follows = Vec::new();
+        let (mut d_shift, mut background_follows) = (Vec::new(), Vec::new());
         for axis in 0..3 {
-            let derivatives = at.frame_derivatives(cfg, &scene, axis)?;
-            d_coords.push(derivatives.coords);
-            // Shadow lines move with the frames too (their ground flags do not).
-            d_lines.extend(derivatives.shadow_lines);
-            d_shift.push(derivatives.shift);
-            background_follows = derivatives.background_follows;
+            let (shift, follows) = at.shift_derivatives(cfg, &scene, axis)?;
+            d_shift.push(shift);
+            background_follows = follows;
         }
-        let in_dim = cfg.ray_input_dim();
         let batch = at.into_batch(cfg, dev)?;
         let offset = offset.as_tensor();
-        let field_major = FieldLayout::Major {
-            per_field: r * in_dim,
-        };
-        let coords = batch
-            .coords
-            .apply_op2(offset, Linearised::new(d_coords, field_major.clone(), s))?;
+        // Coordinates and shadow lines move with the frames (the lines' ground flags do not).
+        let moving = MovingLines::new(cfg, frames, r)?;
+        let coords = batch.coords.apply_op2(offset, moving.clone())?;
         let shadow_lines = match batch.shadow_lines {
-            Some((lines, on_ground)) if d_lines.len() == 3 => Some((
-                lines.apply_op2(offset, Linearised::new(d_lines, field_major, s))?,
-                on_ground,
-            )),
-            other => other,
+            Some((lines, on_ground)) => Some((lines.apply_op2(offset, moving)?, on_ground)),
+            None => None,
         };
         let shift = batch.shift.apply_op2(
             offset,
@@ -592,7 +582,9 @@ impl Support {
 /// How a linearised tensor's elements belong to fields (field 0, the background, never moves).
 #[derive(Clone, Debug)]
 enum FieldLayout {
-    /// [S, R, in]: field-major blocks of `per_field` values (coordinates, shadow lines).
+    /// [S, R, in]: field-major blocks of `per_field` values (coordinates, shadow lines): the
+    /// reference [`MovingLines`] is tested against.
+    #[cfg_attr(not(test), allow(dead_code))]
     Major { per_field: usize },
     /// [1, R, S]: the field is the last index (ordering shifts). The background's shift of ray
     /// r moves with field `background_follows[r]` (`FrameDerivatives`; 0 = with none).
@@ -720,11 +712,133 @@ impl CustomOp2 for Linearised {
     }
 }
 
+/// Encoded lines [S, R, in] (coordinates or shadow lines, one scene) as a function of the
+/// foreground frame origins' offsets [3, K] (the second input, zero when read): the forward is
+/// the lines themselves; the backward contracts their gradient with the derivative of the
+/// encoding in one pass, without writing the derivatives out (`Linearised` with the
+/// derivatives of `HostRays::frame_derivatives` is the reference it is tested against, at a
+/// fifth of its cost).
+///
+/// Moving a frame's origin by δ along a world axis moves the line's origin in the frame by
+/// −δ·a (a = A⁻¹·e_axis) and not its direction d', so only the moment m = o' × d' / s changes,
+/// by −(a × d')/s; the bounded moment m̂ = m/√(1 + |m|²) and its Fourier features follow (see
+/// `rays::encode_line_derivative`). With g the gradient of a line's encoding and g_m that of
+/// its moment, g·∂x/∂δ = −a·(d' × g_m)/s: per field, one 3-vector Σ d' × g_m over the lines.
+#[derive(Clone)]
+struct MovingLines {
+    /// Per foreground frame, A⁻¹·e for the three world axes.
+    frame_axes: Vec<[DVec3; 3]>,
+    rays: usize,
+    in_dim: usize,
+    freqs: usize,
+    scene_scale: f64,
+}
+
+impl MovingLines {
+    fn new(cfg: &crate::model::Config, frames: &[DMat4], rays: usize) -> Result<MovingLines> {
+        let inverses = crate::model::rays::world_to_slot(frames)?;
+        Ok(MovingLines {
+            frame_axes: inverses
+                .iter()
+                .map(|inv| [DVec3::X, DVec3::Y, DVec3::Z].map(|e| inv.transform_vector3(e)))
+                .collect(),
+            rays,
+            in_dim: cfg.ray_input_dim(),
+            freqs: cfg.ray_fourier_freqs,
+            scene_scale: cfg.scene_scale,
+        })
+    }
+
+    /// Σ over the lines of one field of d' × g_m, from their encodings `x` and gradients `g`.
+    fn moment_torque(&self, x: &[f32], g: &[f32]) -> DVec3 {
+        let mut sum = DVec3::ZERO;
+        for (x, g) in x.chunks_exact(self.in_dim).zip(g.chunks_exact(self.in_dim)) {
+            // The bounded moment's gradient: its own entry and its Fourier features'
+            // (∂sin(ωv) = ω cos(ωv), ∂cos(ωv) = −ω sin(ωv), sin and cos read from x).
+            let mut g_hat = [0f64; 3];
+            for (j, gj) in g_hat.iter_mut().enumerate() {
+                let c = 3 + j;
+                let mut v = g[c] as f64;
+                let mut omega = std::f64::consts::PI;
+                for f in 0..self.freqs {
+                    let (sin, cos) = (x[6 + 12 * f + c] as f64, x[12 + 12 * f + c] as f64);
+                    v += omega * (g[6 + 12 * f + c] as f64 * cos - g[12 + 12 * f + c] as f64 * sin);
+                    omega *= 2.0;
+                }
+                *gj = v;
+            }
+            // Through m̂ = m/√(1 + |m|²): ∂m̂ = √(1 − |m̂|²)·(I − m̂m̂ᵀ)·∂m, a symmetric map.
+            let g_hat = DVec3::from_array(g_hat);
+            let m_hat = DVec3::new(x[3] as f64, x[4] as f64, x[5] as f64);
+            let g_m =
+                (1.0 - m_hat.length_squared()).max(0.0).sqrt() * (g_hat - m_hat * m_hat.dot(g_hat));
+            let d_frame = DVec3::new(x[0] as f64, x[1] as f64, x[2] as f64);
+            sum += d_frame.cross(g_m);
+        }
+        sum
+    }
+}
+
+impl CustomOp2 for MovingLines {
+    fn name(&self) -> &'static str {
+        "colf-moving-lines"
+    }
+
+    fn cpu_fwd(
+        &self,
+        xs: &CpuStorage,
+        xl: &Layout,
+        os: &CpuStorage,
+        ol: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (x, offset) = (cpu_f32(xs, xl)?, cpu_f32(os, ol)?);
+        let k = self.frame_axes.len();
+        if offset.len() != 3 * k || x.len() != (1 + k) * self.rays * self.in_dim {
+            candle_core::bail!("moving lines: sizes do not match");
+        }
+        if offset.iter().any(|v| *v != 0.0) {
+            candle_core::bail!("moving lines: the offsets must be zero when read");
+        }
+        Ok((CpuStorage::F32(x.to_vec()), xl.shape().clone()))
+    }
+
+    fn bwd(
+        &self,
+        x: &Tensor,
+        offset: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let x = x.flatten_all()?.to_vec1::<f32>()?;
+        let g = grad.flatten_all()?.to_vec1::<f32>()?;
+        let k = self.frame_axes.len();
+        let per_field = self.rays * self.in_dim;
+        // One field per task, each summed in order: the same bytes for any thread count.
+        let torques: Vec<DVec3> = (1..=k)
+            .into_par_iter()
+            .map(|f| {
+                let block = f * per_field..(f + 1) * per_field;
+                self.moment_torque(&x[block.clone()], &g[block])
+            })
+            .collect();
+        let mut d_offset = vec![0f32; 3 * k];
+        for (slot, (torque, axes)) in torques.iter().zip(&self.frame_axes).enumerate() {
+            for (axis, a) in axes.iter().enumerate() {
+                d_offset[axis * k + slot] = (-a.dot(*torque) / self.scene_scale) as f32;
+            }
+        }
+        Ok((
+            None,
+            Some(Tensor::from_vec(d_offset, offset.shape(), offset.device())?),
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::camera::{look_at, Intrinsics};
-    use crate::model::Config;
+    use crate::model::{Config, FrameDerivatives};
 
     fn camera(size: u32) -> Frame {
         Frame {
@@ -905,6 +1019,121 @@ mod tests {
             assert!(
                 refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).is_err()
             );
+        }
+    }
+
+    /// The one-pass contraction of the encoded lines' gradient against the written-out
+    /// derivatives (`HostRays::frame_derivatives` through `Linearised`), for rotated frames,
+    /// Fourier features, shadow lines, and lines near and far.
+    #[test]
+    fn moving_lines_give_the_gradient_of_the_written_out_derivatives() {
+        let overrides = [
+            "ray_fourier_freqs=4",
+            "shadow_head=true",
+            "shadow_light=[30, 55]",
+        ]
+        .map(String::from);
+        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        let dev = candle_core::Device::Cpu;
+        let frames: Vec<DMat4> = (0..3)
+            .map(|i| {
+                let a = 0.7 + 1.9 * i as f64;
+                DMat4::from_scale_rotation_translation(
+                    DVec3::splat(1.0 + 0.3 * i as f64),
+                    glam::DQuat::from_axis_angle(DVec3::new(0.2, 0.3, 1.0).normalize(), a),
+                    DVec3::new(2.0 * a.cos(), 3.0 * a.sin(), 0.4 * i as f64),
+                )
+            })
+            .collect();
+        let mut rng = StdRng::seed_from_u64(3);
+        let r = 97;
+        let eye = DVec3::new(7.0, -6.0, 8.0);
+        let origins: Vec<DVec3> = (0..r)
+            .map(|i| eye * (1.0 + 30.0 * (i % 5 == 0) as u8 as f64))
+            .collect();
+        let dirs: Vec<DVec3> = (0..r)
+            .map(|_| {
+                let at = DVec3::new(
+                    rng.random_range(-4.0..4.0),
+                    rng.random_range(-4.0..4.0),
+                    rng.random_range(-1.0..1.0),
+                );
+                at - eye
+            })
+            .collect();
+        let scene = [SceneRays {
+            slot_to_world: &frames,
+            origins: &origins,
+            dirs: &dirs,
+        }];
+        let host = HostRays::new(&cfg, &scene).unwrap();
+        let derivatives: Vec<FrameDerivatives> = (0..3)
+            .map(|axis| host.frame_derivatives(&cfg, &scene, axis).unwrap())
+            .collect();
+        let s = 1 + frames.len();
+        let in_dim = cfg.ray_input_dim();
+        let (coords, lines) = (host.coords.clone(), host.shadow_lines.clone().unwrap().0);
+        for (values, written) in [
+            (
+                coords,
+                derivatives.iter().map(|d| d.coords.clone()).collect(),
+            ),
+            (
+                lines,
+                derivatives
+                    .iter()
+                    .map(|d| d.shadow_lines.clone().unwrap())
+                    .collect(),
+            ),
+        ] {
+            let n = values.len();
+            let x = Tensor::from_vec(values, (s, r, in_dim), &dev).unwrap();
+            let weights: Vec<f32> = (0..n).map(|_| rng.random_range(-1.0..1.0)).collect();
+            let weights = Tensor::from_vec(weights, (s, r, in_dim), &dev).unwrap();
+            let gradient_of = |y: Tensor| {
+                (y * &weights)
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .backward()
+                    .unwrap()
+            };
+            let offset = Var::zeros((3, s - 1), candle_core::DType::F32, &dev).unwrap();
+            let fast = gradient_of(
+                x.apply_op2(
+                    offset.as_tensor(),
+                    MovingLines::new(&cfg, &frames, r).unwrap(),
+                )
+                .unwrap(),
+            );
+            let reference = gradient_of(
+                x.apply_op2(
+                    offset.as_tensor(),
+                    Linearised::new(
+                        written,
+                        FieldLayout::Major {
+                            per_field: r * in_dim,
+                        },
+                        s,
+                    ),
+                )
+                .unwrap(),
+            );
+            let fast = fast
+                .get(offset.as_tensor())
+                .unwrap()
+                .to_vec2::<f32>()
+                .unwrap();
+            let reference = reference
+                .get(offset.as_tensor())
+                .unwrap()
+                .to_vec2::<f32>()
+                .unwrap();
+            for (a, b) in fast.iter().flatten().zip(reference.iter().flatten()) {
+                let scale = a.abs().max(b.abs()).max(1e-3);
+                assert!((a - b).abs() / scale < 1e-4, "{fast:?} vs {reference:?}");
+            }
+            assert!(fast.iter().flatten().any(|v| v.abs() > 1e-2));
         }
     }
 

@@ -4,6 +4,7 @@
 use crate::camera::Frame;
 use crate::image_io::RgbImage32;
 use crate::model::Colf;
+use crate::render::fast::FastRenderer;
 use anyhow::Result;
 use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
@@ -50,7 +51,9 @@ impl<'a> InputView<'a> {
     }
 
     /// The mean squared colour error, on the compared pixels, of slots (`fg_latents` in frames
-    /// `slot_to_world`, and `bg_latent`) rendered by the model's reference (candle) path.
+    /// `slot_to_world`, and `bg_latent`) rendered by the fast renderer (the reference path's
+    /// function to float rounding, at a third of its time: the tries of an encoding are judged
+    /// this way).
     pub fn mse(
         &self,
         model: &Colf,
@@ -59,11 +62,11 @@ impl<'a> InputView<'a> {
         slot_to_world: &[DMat4],
     ) -> Result<f64> {
         let prepared = model.prepare(fg_latents, bg_latent)?;
-        let out = model.render_rays(
-            &prepared,
-            slot_to_world,
+        let out = FastRenderer::new(model, &prepared, slot_to_world)?.render(
             &self.compared.origins,
             &self.compared.dirs,
+            None,
+            None,
         )?;
         Ok(self.compared.mse(&out.rgb))
     }

@@ -324,28 +324,17 @@ impl HostRays {
     ) -> Result<FrameDerivatives> {
         let (s, r) = (self.fields, self.rays);
         let in_dim = cfg.ray_input_dim();
+        let (shift, background_follows) = self.shift_derivatives(cfg, scenes, axis)?;
         let mut coords = vec![0f32; self.coords.len()];
         let mut lines = self.shadow_lines.as_ref().map(|(l, _)| vec![0f32; l.len()]);
-        let mut shift = vec![0f32; self.shift.len()];
-        let mut background_follows = vec![0u32; scenes.len() * r];
         let to_light = cfg.shadow_light.map(light_direction);
         let mut world_axis = DVec3::ZERO;
         world_axis[axis] = 1.0;
         for (bi, scene) in scenes.iter().enumerate() {
             let inverses = check(bi, scene)?;
-            // The background's shift moves with the nearest frame's along = (t − o)·d̂.
-            let frames = field_frames(&inverses, scene.slot_to_world);
-            for ri in 0..r {
-                let d_hat = scene.dirs[ri].normalize();
-                if let Some(nearest) = background_anchor(cfg, &frames, scene.origins[ri], d_hat) {
-                    shift[(bi * r + ri) * s] = d_hat[axis] as f32;
-                    background_follows[bi * r + ri] = nearest as u32;
-                }
-            }
-            for (k, (inv, m)) in inverses.iter().zip(scene.slot_to_world).enumerate() {
+            for (k, inv) in inverses.iter().enumerate() {
                 let field = bi * s + 1 + k;
                 let frame_axis = inv.transform_vector3(world_axis);
-                let t = m.w_axis.truncate();
                 for ri in 0..r {
                     let (o, d) = (scene.origins[ri], scene.dirs[ri]);
                     let at = (field * r + ri) * in_dim;
@@ -372,6 +361,44 @@ impl HostRays {
                             cfg.ray_fourier_freqs,
                         );
                     }
+                }
+            }
+        }
+        Ok(FrameDerivatives {
+            coords,
+            shadow_lines: lines,
+            shift,
+            background_follows,
+        })
+    }
+
+    /// [`FrameDerivatives::shift`] and [`FrameDerivatives::background_follows`] alone: what
+    /// refinement still needs written out once the encoded lines' derivatives are contracted
+    /// with their gradient on the fly (`encode/refine.rs`).
+    pub fn shift_derivatives(
+        &self,
+        cfg: &Config,
+        scenes: &[SceneRays],
+        axis: usize,
+    ) -> Result<(Vec<f32>, Vec<u32>)> {
+        let (s, r) = (self.fields, self.rays);
+        let mut shift = vec![0f32; self.shift.len()];
+        let mut background_follows = vec![0u32; scenes.len() * r];
+        for (bi, scene) in scenes.iter().enumerate() {
+            let inverses = check(bi, scene)?;
+            // The background's shift moves with the nearest frame's along = (t − o)·d̂.
+            let frames = field_frames(&inverses, scene.slot_to_world);
+            for ri in 0..r {
+                let d_hat = scene.dirs[ri].normalize();
+                if let Some(nearest) = background_anchor(cfg, &frames, scene.origins[ri], d_hat) {
+                    shift[(bi * r + ri) * s] = d_hat[axis] as f32;
+                    background_follows[bi * r + ri] = nearest as u32;
+                }
+            }
+            for (k, m) in scene.slot_to_world.iter().enumerate() {
+                let t = m.w_axis.truncate();
+                for ri in 0..r {
+                    let (o, d) = (scene.origins[ri], scene.dirs[ri]);
                     // along = (t − o)·d̂; with a locality bound ρ²/r, ρ² = |t − o|² − along².
                     let d_hat = d.normalize();
                     let along = (t - o).dot(d_hat);
@@ -383,12 +410,7 @@ impl HostRays {
                 }
             }
         }
-        Ok(FrameDerivatives {
-            coords,
-            shadow_lines: lines,
-            shift,
-            background_follows,
-        })
+        Ok((shift, background_follows))
     }
 }
 

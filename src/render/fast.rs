@@ -367,6 +367,23 @@ pub struct Active<'a> {
     pub shadows: Option<&'a [bool]>,
 }
 
+/// Every field's light field evaluated on a set of rays ([`FastRenderer::evaluate_fields`]):
+/// what the composition reads, so that any subset of the slots can be composited without
+/// evaluating them again ([`FastRenderer::composite`]; the redundant-slot drop judges a dozen
+/// subsets of one encoding).
+pub struct FieldValues {
+    fields: usize,
+    /// [rays, fields, 3], before shadows.
+    colors: Vec<f32>,
+    /// The ordering heads' outputs [rays, fields].
+    order: Vec<f32>,
+    /// The ordering shifts [rays, fields] and their per-ray base.
+    shift: Vec<f32>,
+    base: Vec<f64>,
+    /// The shadow densities the foreground slots cast [rays, fields].
+    shadow: Vec<f32>,
+}
+
 /// A scene ready for the fast renderer: host copies of the weights, made once.
 pub struct FastRenderer {
     kind: Kind,
@@ -449,6 +466,122 @@ impl FastRenderer {
         active: Active,
     ) -> Result<RayOutput> {
         self.render_with(origins, dirs, None, Some(active))
+    }
+
+    /// Every field's light field on the rays, once, for [`Self::composite`]: the stage of a
+    /// render that costs (the compositor's is a small part of it). Light-field models only.
+    pub fn evaluate_fields(&self, origins: &[DVec3], dirs: &[DVec3]) -> Result<FieldValues> {
+        let Kind::LightField(lf) = &self.kind else {
+            bail!("composing subsets of the slots applies to light-field models only");
+        };
+        let (s, r) = (self.fields(), origins.len());
+        if dirs.len() != r {
+            bail!("{r} ray origins but {} directions", dirs.len());
+        }
+        crate::model::rays::check_rays(origins, dirs)?;
+        let mut values = FieldValues {
+            fields: s,
+            colors: vec![0.0; 3 * s * r],
+            order: vec![0.0; s * r],
+            shift: vec![0.0; s * r],
+            base: vec![0.0; r],
+            shadow: vec![0.0; s * r],
+        };
+        let c = LF_CHUNK;
+        values
+            .colors
+            .par_chunks_mut(3 * s * c)
+            .zip(values.order.par_chunks_mut(s * c))
+            .zip(values.shift.par_chunks_mut(s * c))
+            .zip(values.base.par_chunks_mut(c))
+            .zip(values.shadow.par_chunks_mut(s * c))
+            .enumerate()
+            .try_for_each_init(
+                Scratch::default,
+                |sc, (ci, ((((colors, order), shift), base), shadow))| {
+                    let (start, n) = (ci * c, base.len());
+                    let rays = start..start + n;
+                    self.lf_fields(lf, sc, &origins[rays.clone()], &dirs[rays], None, shadow)?;
+                    colors.copy_from_slice(&sc.colors[..3 * s * n]);
+                    order.copy_from_slice(&sc.order[..s * n]);
+                    shift.copy_from_slice(&sc.shift[..s * n]);
+                    base.copy_from_slice(&sc.base[..n]);
+                    Ok::<(), anyhow::Error>(())
+                },
+            )?;
+        Ok(values)
+    }
+
+    /// The render of `values`' rays by the fields `keep` names (one flag per field; the
+    /// background's must be set): the same output as [`Self::render`] with those fields active
+    /// on every ray, from the light fields evaluated once.
+    pub fn composite(&self, values: &FieldValues, keep: &[bool]) -> Result<RayOutput> {
+        let Kind::LightField(lf) = &self.kind else {
+            bail!("composing subsets of the slots applies to light-field models only");
+        };
+        let s = self.fields();
+        if values.fields != s || keep.len() != s {
+            bail!(
+                "{} kept flags and field values of {} fields for {s} fields",
+                keep.len(),
+                values.fields
+            );
+        }
+        if !keep[0] {
+            bail!("the background must be kept");
+        }
+        let r = values.base.len();
+        let mut out = RayOutput {
+            rgb: vec![0.0; 3 * r],
+            weights: vec![0.0; s * r],
+            ordering: vec![0.0; s * r],
+            shadow: vec![0.0; s * r],
+            fields: s,
+        };
+        let active = keep.repeat(LF_CHUNK.min(r));
+        // Rays only index the chunks here: the fields were evaluated already.
+        let at_origin = vec![DVec3::ZERO; r];
+        par_ray_chunks(
+            &mut out,
+            LF_CHUNK,
+            &at_origin,
+            &at_origin,
+            |sc, start, rays, out| {
+                let n = rays.0.len();
+                let grow_to = |v: &mut Vec<f32>, src: &[f32]| {
+                    v.clear();
+                    v.extend_from_slice(src);
+                };
+                grow_to(
+                    &mut sc.colors,
+                    &values.colors[3 * s * start..3 * s * (start + n)],
+                );
+                grow_to(&mut sc.order, &values.order[s * start..s * (start + n)]);
+                grow_to(&mut sc.shift, &values.shift[s * start..s * (start + n)]);
+                sc.base.clear();
+                sc.base.extend_from_slice(&values.base[start..start + n]);
+                let width = lf.max_width();
+                grow(&mut sc.b, n * width);
+                grow(&mut sc.c, n * width);
+                grow(&mut sc.world, n * s);
+                grow(&mut sc.score, n * s);
+                // A left-out slot casts no shadow, as in a render where it is not evaluated.
+                for (ri, row) in out.shadow.chunks_exact_mut(s).enumerate() {
+                    for (si, v) in row.iter_mut().enumerate() {
+                        *v = if keep[si] {
+                            values.shadow[(start + ri) * s + si]
+                        } else {
+                            0.0
+                        };
+                    }
+                }
+                let fields = Some(&active[..n * s]);
+                self.lf_scores(lf, sc, n, fields);
+                self.lf_composite(lf, sc, n, fields, out);
+                Ok(())
+            },
+        )?;
+        Ok(out)
     }
 
     /// True for a light-field model whose slots cast shadows read along the light
@@ -552,6 +685,24 @@ impl FastRenderer {
         active: Option<Active>,
         out: ChunkOut,
     ) -> Result<()> {
+        self.lf_fields(lf, sc, origins, dirs, active, out.shadow)?;
+        let fields = active.map(|a| a.fields);
+        self.lf_scores(lf, sc, origins.len(), fields);
+        self.lf_composite(lf, sc, origins.len(), fields, out);
+        Ok(())
+    }
+
+    /// Stage 1 of [`Self::lf_chunk`] for every field: the scratch sized for the chunk, the
+    /// ordering shifts, and each field's colours, orderings and shadows ([`Self::lf_field`]).
+    fn lf_fields(
+        &self,
+        lf: &LightFieldHost,
+        sc: &mut Scratch,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        active: Option<Active>,
+        shadow: &mut [f32],
+    ) -> Result<()> {
         let s = self.fields();
         let n = origins.len();
         let width = lf.max_width();
@@ -577,11 +728,8 @@ impl FastRenderer {
         sc.shift = rays.shift.flatten_all()?.to_vec1::<f32>()?; // [n, S]
         sc.base = rays.base;
         for si in 0..s {
-            self.lf_field(lf, sc, si, origins, dirs, active, out.shadow)?;
+            self.lf_field(lf, sc, si, origins, dirs, active, shadow)?;
         }
-        let fields = active.map(|a| a.fields);
-        self.lf_scores(lf, sc, n, fields);
-        self.lf_composite(lf, sc, n, fields, out);
         Ok(())
     }
 
