@@ -81,6 +81,61 @@ fn one_image_encodes_as_it_always_did_and_several_give_one_scene() {
     );
 }
 
+/// Slots where the views agree (`--agreed-slots`): a refined multi-view encoding with and
+/// without them is valid and byte-deterministic, `--fast` adds none unless told, and the added
+/// slots, if kept, name where they came from.
+#[test]
+fn slots_where_the_views_agree_are_deterministic_and_off_with_fast() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = scene(dir.path());
+    let cameras = scene.join("transforms.json");
+    let views: Vec<_> = (0..3)
+        .map(|v| scene.join(format!("view_{v:03}.png")))
+        .collect();
+    let encode = |extra: &[&str], out: &str| {
+        let out = dir.path().join(out);
+        bin("colf-encode")
+            .args(&views)
+            .arg("--camera")
+            .arg(&cameras)
+            .args(["--slots", "4", "--tries", "1", "--refine", "4", "-o"])
+            .arg(&out)
+            .args(extra)
+            .assert()
+            .success();
+        std::fs::read(out).unwrap()
+    };
+    let agreed = encode(&["--agreed-slots", "3"], "a.codes");
+    assert_eq!(agreed, encode(&["--agreed-slots", "3"], "b.codes"));
+    let doc = inspect(&dir.path().join("a.codes"));
+    for slot in doc["slots"].as_array().unwrap() {
+        let source = slot["source"].as_str().unwrap();
+        assert!(
+            source.starts_with("view_00") || source.starts_with("agreed#"),
+            "{source}"
+        );
+    }
+    encode(&["--agreed-slots", "0"], "none.codes");
+    // --fast: one pass, nothing added, whatever the default.
+    let fast = |extra: &[&str], out: &str| {
+        let out = dir.path().join(out);
+        bin("colf-encode")
+            .args(&views)
+            .arg("--camera")
+            .arg(&cameras)
+            .args(["--fast", "-o"])
+            .arg(&out)
+            .args(extra)
+            .assert()
+            .success();
+        std::fs::read(out).unwrap()
+    };
+    assert_eq!(
+        fast(&[], "fast.codes"),
+        fast(&["--agreed-slots", "0"], "fast0.codes")
+    );
+}
+
 #[test]
 fn several_images_need_their_cameras() {
     let dir = tempfile::tempdir().unwrap();

@@ -240,6 +240,13 @@ pub struct FitArgs {
     #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().rays, value_name = "R", value_parser = parse::at_least_one)]
     pub refine_rays: usize,
 
+    /// With several input views: up to N slots added where the views agree on something the
+    /// refined slots do not draw (blobs of the renders' residual whose centre rays meet), then
+    /// all refined again and dropped unless needed (0: none; default: 0 with --fast, else
+    /// the default's; docs/eval.md).
+    #[arg(long, value_name = "N")]
+    pub agreed_slots: Option<usize>,
+
     /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
     #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_anchor: f64,
@@ -310,6 +317,16 @@ impl FitArgs {
         })
     }
 
+    /// How many slots several views may add where they agree: --agreed-slots, else none for
+    /// `--fast` (an added slot needs the refinement it skips), else `DEFAULT_AGREED_SLOTS`.
+    pub fn agreed_slots(&self) -> usize {
+        self.agreed_slots.unwrap_or(if self.fast {
+            0
+        } else {
+            crate::encode::residual::DEFAULT_AGREED_SLOTS
+        })
+    }
+
     /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
     /// The encoding these flags ask for with `model_config`, `slots` (the stage's --slots) and
     /// slot-noise `seed` (no camera or source: the stage sets them per image).
@@ -338,6 +355,7 @@ impl FitArgs {
             tries: encoding.tries,
             refine: self.options(encoding.refine, seed),
             redundant_mse: self.redundant_mse(),
+            agreed_slots: self.agreed_slots(),
             ..crate::encode::EncodeOptions::one_pass(encoding.slots)
         }
     }

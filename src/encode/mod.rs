@@ -19,6 +19,7 @@
 pub mod multiview;
 pub mod redundant;
 pub mod refine;
+pub mod residual;
 pub mod view;
 
 use crate::camera::{Frame, Intrinsics};
@@ -54,6 +55,9 @@ pub struct EncodeOptions {
     /// Drop slots the image does not need, as long as the input view's mean squared error
     /// grows by at most this in all (0: keep every slot); see [`drop_redundant_slots`].
     pub redundant_mse: f64,
+    /// With several views: at most this many slots added where the views agree on an object
+    /// no slot draws ([`residual::add_agreed_slots`]; 0: none). Not read for one view.
+    pub agreed_slots: usize,
 }
 
 impl EncodeOptions {
@@ -69,6 +73,7 @@ impl EncodeOptions {
             tries: 1,
             refine: RefineOptions::default(),
             redundant_mse: 0.0,
+            agreed_slots: 0,
         }
     }
 
@@ -252,6 +257,7 @@ mod tests {
             tries,
             refine: RefineOptions::default(),
             redundant_mse: 0.0,
+            agreed_slots: 0,
         }
     }
 

@@ -10,8 +10,10 @@
 //! (a piece of an object its view split); the slot already kept stays, the newcomer goes. A slot
 //! no earlier slot matches is an object only this view saw, and joins. The background is the
 //! first view's. Then the default encoding's refinement runs on all views at once (its rays
-//! per step are per view: V views, V times the pixels a step), and the slots no view needs are
-//! dropped (the redundancy budget on the mean error over the views).
+//! per step are per view: V views, V times the pixels a step). With `agreed_slots`, what the
+//! views then agree the slots still miss gets new slots, refined again with the rest
+//! ([`super::residual`]). Last, the slots no view needs are dropped (the redundancy budget on
+//! the mean error over the views).
 //!
 //! Matching by what the slots draw, not by where their frames sit: a slot's frame origin is
 //! only a guess of the object's position along its ray (`model::frames`), while its rendered
@@ -58,6 +60,8 @@ pub struct MultiViewReport {
     pub proposed: Vec<usize>,
     /// Slots of later views found to draw an object an earlier view's slot already drew.
     pub matched: usize,
+    /// Slots added where the views agreed on an object no slot drew (before the last drop).
+    pub agreed: usize,
     /// The joint refinement, if it ran.
     pub refine: Option<RefineReport>,
 }
@@ -83,6 +87,7 @@ pub fn encode_views(
             let report = MultiViewReport {
                 proposed: vec![codes.slots.len()],
                 matched: 0,
+                agreed: 0,
                 refine,
             };
             return Ok((codes, report));
@@ -122,7 +127,7 @@ pub fn encode_views(
                 .map(|(s, _)| s),
         );
     }
-    // 3. All views at once: refinement, then the slots no view needs dropped.
+    // 3. All views at once: refinement.
     let all: Vec<&InputView> = views.iter().collect();
     if opts.refine.steps > 0 {
         // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
@@ -138,6 +143,26 @@ pub fn encode_views(
             &refine_options,
         )?);
     }
+    // 4. What the views agree on and no slot draws: new slots, then all refined again.
+    if opts.agreed_slots > 0 {
+        let added = super::residual::add_agreed_slots(
+            model,
+            &mut slots,
+            &background,
+            &all,
+            opts.agreed_slots,
+        )?;
+        report.agreed = added;
+        if added > 0 && opts.refine.steps > 0 {
+            let refine_options = refine::RefineOptions {
+                steps: opts.refine.steps.div_ceil(2),
+                rays: opts.refine.rays.saturating_mul(views.len()),
+                ..opts.refine
+            };
+            refine::refine_slots(model, &mut slots, &mut background, &all, &refine_options)?;
+        }
+    }
+    // 5. The slots no view needs dropped.
     let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse)?;
     let codes = Codes {
         slots,
