@@ -145,6 +145,7 @@ pub fn encode_views(
     }
     // 4. What the views agree on and no slot draws: new slots, then all refined again.
     if opts.agreed_slots > 0 {
+        let first_added = slots.len();
         let added = super::residual::add_agreed_slots(
             model,
             &mut slots,
@@ -161,6 +162,7 @@ pub fn encode_views(
             };
             refine::refine_slots(model, &mut slots, &mut background, &all, &refine_options)?;
         }
+        slots = super::residual::keep_agreed(model, slots, &background, &all, first_added)?;
     }
     // 5. The slots no view needs dropped.
     let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse)?;

@@ -10,8 +10,9 @@
 //! [`MAX_RAY_GAP`] of each other, above the floor, in front of both cameras — is something in
 //! 3-D. Each agreed point gets a new slot: its frame at the point (oriented as the first view's
 //! slots), its latent a copy of the smallest slot's (in CLEVR-like scenes a small object's is
-//! the nearest start). The caller refines again on all views and drops what no view needs, so
-//! a point that is no object costs only time.
+//! the nearest start). The caller refines again on all views; an added slot then stays only if
+//! two views or more see it ([`keep_agreed`]), and the redundant-slot drop removes what no view
+//! needs, so a point that is no object costs only time.
 
 use super::view::InputView;
 use crate::codes::Slot;
@@ -194,6 +195,53 @@ pub fn add_agreed_slots(
     Ok(points.len())
 }
 
+/// An added slot stays only if, after refinement, it wins at least this many of the judged
+/// pixels ([`InputView::compared`]) in each of two views or more: what one view alone asks for
+/// (shading, a part of an object drawn a little off) is not an object the views agree on.
+pub const AGREED_KEEP_PIXELS: usize = 2;
+
+/// `slots` without those of index `first_added` or later that fewer than two `views` see
+/// ([`AGREED_KEEP_PIXELS`]).
+pub fn keep_agreed(
+    model: &Colf,
+    slots: Vec<Slot>,
+    background: &[f32],
+    views: &[&InputView],
+    first_added: usize,
+) -> Result<Vec<Slot>> {
+    if first_added >= slots.len() {
+        return Ok(slots);
+    }
+    let label_maps = views
+        .iter()
+        .map(|view| super::multiview::labels(model, &slots, background, view))
+        .collect::<Result<Vec<_>>>()?;
+    let seen_by = views_seeing(&label_maps, slots.len(), AGREED_KEEP_PIXELS);
+    Ok(slots
+        .into_iter()
+        .zip(seen_by)
+        .enumerate()
+        .filter(|(k, (_, views))| *k < first_added || *views >= 2)
+        .map(|(_, (slot, _))| slot)
+        .collect())
+}
+
+/// Per slot (label k + 1 in the maps, 0 the background), in how many of the label maps it
+/// wins at least `min_pixels` pixels.
+fn views_seeing(label_maps: &[Vec<u32>], slots: usize, min_pixels: usize) -> Vec<usize> {
+    let mut seen_by = vec![0usize; slots];
+    for labels in label_maps {
+        let mut won = vec![0usize; slots];
+        for &l in labels.iter().filter(|&&l| l > 0 && (l as usize) <= slots) {
+            won[l as usize - 1] += 1;
+        }
+        for (seen, n) in seen_by.iter_mut().zip(won) {
+            *seen += (n >= min_pixels) as usize;
+        }
+    }
+    seen_by
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -274,6 +322,18 @@ mod tests {
         assert_eq!(blobs[0].pixels, 9);
         let ray = camera.ray_at(11.5, 5.5);
         assert!((blobs[0].dir - ray.direction.normalize()).length() < 1e-9);
+    }
+
+    #[test]
+    fn a_slot_counts_in_the_views_where_it_wins_enough_pixels() {
+        let maps = vec![
+            vec![0, 1, 1, 2, 3, 3, 3],
+            vec![1, 1, 0, 0, 3, 2, 2],
+            vec![3, 3, 0, 0, 0, 0, 2],
+        ];
+        assert_eq!(views_seeing(&maps, 3, 2), vec![2, 1, 2]);
+        assert_eq!(views_seeing(&maps, 3, 1), vec![2, 3, 3]);
+        assert_eq!(views_seeing(&[], 2, 1), vec![0, 0]);
     }
 
     #[test]
