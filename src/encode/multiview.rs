@@ -129,18 +129,19 @@ pub fn encode_views(
     }
     // 3. All views at once: refinement.
     let all: Vec<&InputView> = views.iter().collect();
+    // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
+    let joint = |steps: usize| refine::RefineOptions {
+        steps,
+        rays: opts.refine.rays.saturating_mul(views.len()),
+        ..opts.refine
+    };
     if opts.refine.steps > 0 {
-        // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
-        let refine_options = refine::RefineOptions {
-            rays: opts.refine.rays.saturating_mul(views.len()),
-            ..opts.refine
-        };
         report.refine = Some(refine::refine_slots(
             model,
             &mut slots,
             &mut background,
             &all,
-            &refine_options,
+            &joint(opts.refine.steps),
         )?);
     }
     // 4. What the views agree on and no slot draws: new slots, then all refined again.
@@ -155,12 +156,8 @@ pub fn encode_views(
         )?;
         report.agreed = added;
         if added > 0 && opts.refine.steps > 0 {
-            let refine_options = refine::RefineOptions {
-                steps: opts.refine.steps.div_ceil(2),
-                rays: opts.refine.rays.saturating_mul(views.len()),
-                ..opts.refine
-            };
-            refine::refine_slots(model, &mut slots, &mut background, &all, &refine_options)?;
+            let steps = joint(opts.refine.steps.div_ceil(2));
+            refine::refine_slots(model, &mut slots, &mut background, &all, &steps)?;
         }
         slots = super::residual::keep_agreed(model, slots, &background, &all, first_added)?;
     }

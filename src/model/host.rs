@@ -73,6 +73,17 @@ pub struct RayOutput {
 }
 
 impl RayOutput {
+    /// Zeroed buffers for `rays` rays of `fields` fields, filled in place.
+    pub fn zeros(rays: usize, fields: usize) -> RayOutput {
+        RayOutput {
+            rgb: vec![0.0; 3 * rays],
+            weights: vec![0.0; fields * rays],
+            ordering: vec![0.0; fields * rays],
+            shadow: vec![0.0; fields * rays],
+            fields,
+        }
+    }
+
     /// Empty buffers with room for `rays` rays of `fields` fields, filled by appending.
     fn with_capacity(rays: usize, fields: usize) -> RayOutput {
         RayOutput {

@@ -263,8 +263,10 @@ impl HostRays {
 }
 
 /// The derivatives of a [`HostRays`]' values with respect to moving the foreground frames'
-/// origins along one world axis (all frames together; each field's share is its own): what
-/// test-time refinement needs to move frames by gradient (`encode/refine.rs`).
+/// origins along one world axis (all frames together; each field's share is its own), written
+/// out. Refinement reads only the shifts' ([`HostRays::shift_derivatives`]) and contracts the
+/// encoded lines' on the fly (`MovingLines` in `encode/refine.rs`); these are the reference it
+/// is tested against.
 #[derive(Clone, Debug)]
 pub struct FrameDerivatives {
     /// ∂coords/∂t_axis [B·S, R, in] (0 for the background).

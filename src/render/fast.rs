@@ -531,56 +531,42 @@ impl FastRenderer {
             bail!("the background must be kept");
         }
         let r = values.base.len();
-        let mut out = RayOutput {
-            rgb: vec![0.0; 3 * r],
-            weights: vec![0.0; s * r],
-            ordering: vec![0.0; s * r],
-            shadow: vec![0.0; s * r],
-            fields: s,
-        };
+        let mut out = RayOutput::zeros(r, s);
         let active = keep.repeat(LF_CHUNK.min(r));
-        // Rays only index the chunks here: the fields were evaluated already.
-        let at_origin = vec![DVec3::ZERO; r];
-        par_ray_chunks(
-            &mut out,
-            LF_CHUNK,
-            &at_origin,
-            &at_origin,
-            |sc, start, rays, out| {
-                let n = rays.0.len();
-                let grow_to = |v: &mut Vec<f32>, src: &[f32]| {
-                    v.clear();
-                    v.extend_from_slice(src);
-                };
-                grow_to(
-                    &mut sc.colors,
-                    &values.colors[3 * s * start..3 * s * (start + n)],
-                );
-                grow_to(&mut sc.order, &values.order[s * start..s * (start + n)]);
-                grow_to(&mut sc.shift, &values.shift[s * start..s * (start + n)]);
-                sc.base.clear();
-                sc.base.extend_from_slice(&values.base[start..start + n]);
-                let width = lf.max_width();
-                grow(&mut sc.b, n * width);
-                grow(&mut sc.c, n * width);
-                grow(&mut sc.world, n * s);
-                grow(&mut sc.score, n * s);
-                // A left-out slot casts no shadow, as in a render where it is not evaluated.
-                for (ri, row) in out.shadow.chunks_exact_mut(s).enumerate() {
-                    for (si, v) in row.iter_mut().enumerate() {
-                        *v = if keep[si] {
-                            values.shadow[(start + ri) * s + si]
-                        } else {
-                            0.0
-                        };
-                    }
+        par_ray_chunks(&mut out, LF_CHUNK, |sc, start, out| {
+            let n = out.rgb.len() / 3;
+            let copy_into = |v: &mut Vec<f32>, src: &[f32]| {
+                v.clear();
+                v.extend_from_slice(src);
+            };
+            copy_into(
+                &mut sc.colors,
+                &values.colors[3 * s * start..3 * s * (start + n)],
+            );
+            copy_into(&mut sc.order, &values.order[s * start..s * (start + n)]);
+            copy_into(&mut sc.shift, &values.shift[s * start..s * (start + n)]);
+            sc.base.clear();
+            sc.base.extend_from_slice(&values.base[start..start + n]);
+            let width = lf.max_width();
+            grow(&mut sc.b, n * width);
+            grow(&mut sc.c, n * width);
+            grow(&mut sc.world, n * s);
+            grow(&mut sc.score, n * s);
+            // A left-out slot casts no shadow, as in a render where it is not evaluated.
+            for (ri, row) in out.shadow.chunks_exact_mut(s).enumerate() {
+                for (si, v) in row.iter_mut().enumerate() {
+                    *v = if keep[si] {
+                        values.shadow[(start + ri) * s + si]
+                    } else {
+                        0.0
+                    };
                 }
-                let fields = Some(&active[..n * s]);
-                self.lf_scores(lf, sc, n, fields);
-                self.lf_composite(lf, sc, n, fields, out);
-                Ok(())
-            },
-        )?;
+            }
+            let fields = Some(&active[..n * s]);
+            self.lf_scores(lf, sc, n, fields);
+            self.lf_composite(lf, sc, n, fields, out);
+            Ok(())
+        })?;
         Ok(out)
     }
 
@@ -618,33 +604,22 @@ impl FastRenderer {
                 bail!("the background must be evaluated on every ray");
             }
         }
-        let mut out = RayOutput {
-            rgb: vec![0.0; 3 * r],
-            weights: vec![0.0; s * r],
-            ordering: vec![0.0; s * r],
-            shadow: vec![0.0; s * r],
-            fields: s,
-        };
+        let mut out = RayOutput::zeros(r, s);
         match &self.kind {
             Kind::LightField(lf) => {
                 if samples.is_some() {
                     bail!("samples per ray apply to volumetric models only; this model renders light fields (one evaluation per ray)");
                 }
-                par_ray_chunks(
-                    &mut out,
-                    LF_CHUNK,
-                    origins,
-                    dirs,
-                    |scratch, start, rays, out| {
-                        let n = rays.0.len();
-                        let rows = start * s..(start + n) * s;
-                        let active = active.map(|a| Active {
-                            fields: &a.fields[rows.clone()],
-                            shadows: a.shadows.map(|m| &m[rows.clone()]),
-                        });
-                        self.lf_chunk(lf, scratch, rays.0, rays.1, active, out)
-                    },
-                )?;
+                par_ray_chunks(&mut out, LF_CHUNK, |scratch, start, out| {
+                    let n = out.rgb.len() / 3;
+                    let rays = (&origins[start..start + n], &dirs[start..start + n]);
+                    let rows = start * s..(start + n) * s;
+                    let active = active.map(|a| Active {
+                        fields: &a.fields[rows.clone()],
+                        shadows: a.shadows.map(|m| &m[rows.clone()]),
+                    });
+                    self.lf_chunk(lf, scratch, rays.0, rays.1, active, out)
+                })?;
             }
             Kind::Volumetric(vol) => {
                 if active.is_some() {
@@ -655,7 +630,9 @@ impl FastRenderer {
                     bail!("samples per ray must be in 1..=4096, not {n_samples}");
                 }
                 let chunk = (VOL_POINTS / n_samples).max(1);
-                par_ray_chunks(&mut out, chunk, origins, dirs, |scratch, _, rays, out| {
+                par_ray_chunks(&mut out, chunk, |scratch, start, out| {
+                    let n = out.rgb.len() / 3;
+                    let rays = (&origins[start..start + n], &dirs[start..start + n]);
                     self.vol_chunk(
                         vol,
                         scratch,
@@ -1247,7 +1224,6 @@ impl VolumetricHost {
 }
 
 /// One chunk's rays (origins, directions).
-type ChunkRays<'a> = (&'a [DVec3], &'a [DVec3]);
 /// One chunk's outputs: the `RayOutput` rows of its rays.
 struct ChunkOut<'a> {
     rgb: &'a mut [f32],
@@ -1256,18 +1232,11 @@ struct ChunkOut<'a> {
     shadow: &'a mut [f32],
 }
 
-/// Runs `task(scratch, first_ray, rays, outputs)` on the chunks of `chunk` rays of `out` (and the
-/// matching `origins` and `dirs`), in parallel, each with its own scratch buffers; the first
-/// error stops the rest.
-fn par_ray_chunks<F>(
-    out: &mut RayOutput,
-    chunk: usize,
-    origins: &[DVec3],
-    dirs: &[DVec3],
-    task: F,
-) -> Result<()>
+/// Runs `task(scratch, first_ray, outputs)` on the chunks of `chunk` rays of `out`, in
+/// parallel, each with its own scratch buffers; the first error stops the rest.
+fn par_ray_chunks<F>(out: &mut RayOutput, chunk: usize, task: F) -> Result<()>
 where
-    F: Fn(&mut Scratch, usize, ChunkRays, ChunkOut) -> Result<()> + Sync + Send,
+    F: Fn(&mut Scratch, usize, ChunkOut) -> Result<()> + Sync + Send,
 {
     let s = out.fields;
     out.rgb
@@ -1279,15 +1248,14 @@ where
         .try_for_each_init(
             Scratch::default,
             |scratch, (ci, (((rgb, weights), ordering), shadow))| {
-                let (start, n) = (ci * chunk, rgb.len() / 3);
-                let rays = (&origins[start..start + n], &dirs[start..start + n]);
+                let start = ci * chunk;
                 let out = ChunkOut {
                     rgb,
                     weights,
                     ordering,
                     shadow,
                 };
-                task(scratch, start, rays, out)
+                task(scratch, start, out)
             },
         )
 }
