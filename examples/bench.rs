@@ -275,8 +275,8 @@ pub const PAPER_DECODER: [&str; 7] = [
 /// A training step as `colf-train` runs it: the default model's own recipe (the bundled model
 /// as init; 4 scenes × 4 views × 256 rays, K = 7, object proposals for both mask losses), or
 /// (`paper`) the same with the decoder at the `paper` preset's sizes; through the fused decoder
-/// or (`reference`) candle's autograd.
-fn measure_train(which: &str, reference: bool, steps: u64) -> Result<Value> {
+/// or (`reference`) candle's autograd; with `reach` > 0, the model's `shadow_reach` set to it.
+fn measure_train(which: &str, reference: bool, reach: f64, steps: u64) -> Result<Value> {
     use colf::train::trainer::{TrainOptions, Trainer};
     let dir = tempfile::tempdir()?;
     let synth = sibling_binary("colf-synth")?;
@@ -322,6 +322,7 @@ fn measure_train(which: &str, reference: bool, steps: u64) -> Result<Value> {
         eval_scenes: 0,
         max_bad_steps: 10,
         reference_decoder: reference,
+        config_overrides: reach_override(reach),
         ..TrainOptions::default()
     };
     let mut trainer = Trainer::new(opts, false)?;
@@ -340,11 +341,29 @@ fn measure_train(which: &str, reference: bool, steps: u64) -> Result<Value> {
         ""
     };
     Ok(json!({
-        "what": format!("training step ({path}{threads}; 4 scenes x 4 views x 256 rays, K=7, proposals)"),
+        "what": format!("training step ({path}{threads}{}; 4 scenes x 4 views x 256 rays, K=7, proposals)", reach_label(reach)),
         "preset": which, "slots": 7, "runs": steps,
         "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "cores_busy": cpu / wall,
         "rays_per_s": 4096.0 / s, "peak_mib": peak_rss_mib()
     }))
+}
+
+/// `--set shadow_reach=…` for a reach > 0, else nothing.
+fn reach_override(reach: f64) -> Vec<String> {
+    if reach > 0.0 {
+        vec![format!("shadow_reach={reach}")]
+    } else {
+        Vec::new()
+    }
+}
+
+/// A row's note of the shadow reach, empty without one.
+fn reach_label(reach: f64) -> String {
+    if reach > 0.0 {
+        format!(", shadow reach {reach}")
+    } else {
+        String::new()
+    }
 }
 
 /// The config of a decoder measurement: the bundled default model's, or that with the `paper`
@@ -369,12 +388,12 @@ fn decoder_config(which: &str) -> Result<Config> {
 /// The decoder part of a training step — the rays encoded, the light fields, heads, shadows
 /// and compositor, the colour and mask losses, and the backward down to the hypernetworks'
 /// outputs — for 4 scenes × 4 views × 256 rays, K = 7, through the fused kernel or (with
-/// `reference`) candle's autograd.
-fn measure_decoder(which: &str, reference: bool, reps: usize) -> Result<Value> {
+/// `reference`) candle's autograd; with `reach` > 0, `shadow_reach` set to it.
+fn measure_decoder(which: &str, reference: bool, reach: f64, reps: usize) -> Result<Value> {
     use candle_core::{Device, Tensor, Var};
     use colf::model::decode_kernel::DecodeShape;
     use colf::model::{RayBatch, SceneRays, SlotWeights};
-    let cfg = decoder_config(which)?;
+    let cfg = decoder_config(which)?.with_overrides(&reach_override(reach))?;
     let (b, k, r) = (4usize, 7usize, 1024usize);
     let colf = Colf::init(&cfg, 0)?.into_trainable()?;
     let mut net = colf.model().clone();
@@ -452,12 +471,17 @@ fn measure_decoder(which: &str, reference: bool, reps: usize) -> Result<Value> {
     let (fwd, bwd) = shape.macs(false);
     let gflop = 2.0 * (fwd + bwd) * 1e-9;
     let path = if reference { "autograd" } else { "fused" };
-    Ok(json!({
-        "what": format!("decoder fwd+bwd of a training step ({path}; 4 scenes x 4 views x 256 rays, K=7)"),
+    let mut row = json!({
+        "what": format!("decoder fwd+bwd of a training step ({path}{}; 4 scenes x 4 views x 256 rays, K=7)", reach_label(reach)),
         "preset": which, "slots": k, "runs": runs,
-        "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "gflops": gflop / s,
-        "gflops_per_cpu_s": gflop / cpu, "peak_mib": peak_rss_mib()
-    }))
+        "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "peak_mib": peak_rss_mib()
+    });
+    // With a reach the kernel skips work the count includes: no rate is claimed.
+    if reach == 0.0 {
+        row["gflops"] = json!(gflop / s);
+        row["gflops_per_cpu_s"] = json!(gflop / cpu);
+    }
+    Ok(row)
 }
 
 /// The bundled default model's default encoding (its measured slots, tries and refinement, as
@@ -535,6 +559,7 @@ fn run_one(spec: &Value) -> Result<Value> {
         Some("train") => measure_train(
             spec["preset"].as_str().unwrap_or("default"),
             spec["reference"].as_bool().unwrap_or(false),
+            spec["reach"].as_f64().unwrap_or(0.0),
             if quick { 3 } else { 10 },
         ),
         Some("default-encode") => measure_default_encode(
@@ -545,11 +570,16 @@ fn run_one(spec: &Value) -> Result<Value> {
         Some("decoder") => measure_decoder(
             spec["preset"].as_str().unwrap_or("default"),
             spec["reference"].as_bool().unwrap_or(false),
+            spec["reach"].as_f64().unwrap_or(0.0),
             reps,
         ),
         other => bail!("unknown measurement {other:?}"),
     }
 }
+
+/// The shadow reach of the trainer's `shadow reach` rows (world units): the one the room and
+/// paper-sized runs train with (`docs/speed.md`).
+const SHADOW_REACH: f64 = 3.0;
 
 fn main() -> Result<()> {
     // As every colf program does (cli::run): keep freed tensor buffers instead of returning
@@ -574,16 +604,20 @@ fn main() -> Result<()> {
     if !only_render {
         // The trainer: the decoder part of a step and whole steps, fused and autograd side by
         // side; the autograd step also as it ran before (candle's default pool spin).
+        // Each also with shadow lines kept within SHADOW_REACH of their slot (the models'
+        // `shadow_reach`, which training can set).
         for preset in ["default", "paper"] {
             for reference in [false, true] {
                 specs.push(json!({"kind": "decoder", "preset": preset, "reference": reference}));
             }
+            specs.push(json!({"kind": "decoder", "preset": preset, "reach": SHADOW_REACH}));
         }
         for preset in ["default", "paper"] {
             specs.push(json!({"kind": "train", "preset": preset}));
             specs.push(json!({"kind": "train", "preset": preset, "reference": true}));
             specs.push(json!({"kind": "train", "preset": preset, "reference": true,
                               "candle_spin": "25000"}));
+            specs.push(json!({"kind": "train", "preset": preset, "reach": SHADOW_REACH}));
         }
         for size in [64, 128] {
             for reference in [false, true] {
@@ -744,13 +778,23 @@ fn main() -> Result<()> {
                 println!("training step ({preset}): fused {x:.2}x faster than {label}");
             }
         }
-        let d = ratio(
-            find("decoder", preset, "fused", ""),
-            find("decoder", preset, "autograd", ""),
+        let reach = format!("shadow reach {SHADOW_REACH}");
+        if let Some(x) = ratio(
+            find("training step", preset, &reach, ""),
+            find("training step", preset, "autograd", ""),
             "ms",
-        );
-        if let Some(x) = d {
-            println!("decoder part of a step ({preset}): fused {x:.2}x faster than autograd");
+        ) {
+            println!("training step ({preset}): fused with a {reach} {x:.2}x faster than autograd");
+        }
+        for (label, extra) in [("", ""), (" with a ", reach.as_str())] {
+            let d = ratio(
+                find("decoder", preset, "fused", extra),
+                find("decoder", preset, "autograd", ""),
+                "ms",
+            );
+            if let Some(x) = d {
+                println!("decoder part of a step ({preset}): fused{label}{extra} {x:.2}x faster than autograd");
+            }
         }
     }
     for size in [64, 128] {

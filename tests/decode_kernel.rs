@@ -77,13 +77,14 @@ fn model(cfg: &Config, seed: u64) -> Colf {
     colf.into_trainable().unwrap()
 }
 
-/// Rays of one scene: `r` rays from cameras around the origin (a few far away when `extreme`),
-/// and K slot frames (rotated and translated; far away when `extreme`).
+/// Rays of one scene: `r` rays from cameras around the origin (a few far away when `extreme`,
+/// every seventh looking up, off the ground, when `sky`), and K slot frames (rotated and
+/// translated; far away when `extreme`).
 fn scene(
     rng: &mut StdRng,
     k: usize,
     r: usize,
-    extreme: bool,
+    (extreme, sky): (bool, bool),
 ) -> (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>) {
     let frames = (0..k)
         .map(|i| {
@@ -107,7 +108,12 @@ fn scene(
             0.0,
         );
         origins.push(eye);
-        dirs.push(look - eye);
+        let dir = look - eye;
+        dirs.push(if sky && i % 7 == 3 {
+            DVec3::new(dir.x, dir.y, -dir.z)
+        } else {
+            dir
+        });
     }
     (frames, origins, dirs)
 }
@@ -119,9 +125,9 @@ fn random_batch(
     b: usize,
     k: usize,
     r: usize,
-    extreme: bool,
+    (extreme, sky): (bool, bool),
 ) -> RayBatch {
-    let scenes: Vec<_> = (0..b).map(|_| scene(rng, k, r, extreme)).collect();
+    let scenes: Vec<_> = (0..b).map(|_| scene(rng, k, r, (extreme, sky))).collect();
     let scene_rays: Vec<SceneRays> = scenes
         .iter()
         .map(|(f, o, dir)| SceneRays {
@@ -139,6 +145,8 @@ struct Case {
     scenes: usize,
     rays: usize,
     extreme: bool,
+    /// Some rays look up, off the ground (they cast no shadow line).
+    sky: bool,
     /// Make the rays differentiable (as refinement with moving frames does).
     ray_grads: bool,
 }
@@ -158,7 +166,14 @@ fn run(case: &Case, reference: bool) -> Run {
     let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
     let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
     let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
-    let mut rays = random_batch(&case.cfg, &mut rng, b, k, case.rays, case.extreme);
+    let mut rays = random_batch(
+        &case.cfg,
+        &mut rng,
+        b,
+        k,
+        case.rays,
+        (case.extreme, case.sky),
+    );
     let mut ray_vars = Vec::new();
     if case.ray_grads {
         let coords = Var::from_tensor(&rays.coords).unwrap();
@@ -276,6 +291,7 @@ fn case(cfg: Config, k: usize) -> Case {
         scenes: 2,
         rays: 150,
         extreme: false,
+        sky: false,
         ray_grads: false,
     }
 }
@@ -347,6 +363,61 @@ fn a_static_background_and_deeper_heads() {
     ));
 }
 
+/// With `shadow_reach`, shadow lines beyond it and rays off the ground are left out of the
+/// kernel's shadow pass: the same values and gradients as the reference, which masks σ.
+#[test]
+fn shadow_lines_within_a_reach_and_rays_off_the_ground() {
+    let reach = Config {
+        shadow_reach: 2.5,
+        ..base()
+    };
+    for k in [1, 7] {
+        check(Case {
+            sky: true,
+            ..case(reach.clone(), k)
+        });
+    }
+    check(Case {
+        scenes: 1,
+        sky: true,
+        ray_grads: true,
+        ..case(reach, 6)
+    });
+    check(Case {
+        sky: true,
+        ..case(base(), 5)
+    });
+}
+
+/// The reach only removes shadow: σ within it is the unbounded model's, beyond it 0, and
+/// about half of the random lines lie beyond 2.5 units here (so the test means something).
+#[test]
+fn a_shadow_reach_zeroes_only_the_far_lines() {
+    let bounded = Config {
+        shadow_reach: 2.5,
+        ..base()
+    };
+    let shadow = |cfg: &Config| {
+        let out = run(&case(cfg.clone(), 7), false);
+        let (_, t) = out
+            .outputs
+            .iter()
+            .find(|(n, _)| n == "shadow")
+            .unwrap()
+            .clone();
+        t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let (free, near) = (shadow(&base()), shadow(&bounded));
+    let zeroed = near.iter().filter(|&&v| v == 0.0).count() as f32 / near.len() as f32;
+    assert!((0.2..0.8).contains(&zeroed), "{zeroed} of the σ zeroed");
+    for (a, b) in near.iter().zip(&free) {
+        assert!(
+            *a == 0.0 || (a - b).abs() <= 1e-6 * b.abs().max(1.0),
+            "{a} vs {b}"
+        );
+    }
+}
+
 #[test]
 fn differentiable_rays_as_in_refinement() {
     check(Case {
@@ -401,7 +472,7 @@ fn a_support_leaves_out_exactly_the_fields_it_drops() {
     let mut rng = StdRng::seed_from_u64(4);
     let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
     let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
-    let rays = random_batch(&cfg, &mut rng, b, k, r, false);
+    let rays = random_batch(&cfg, &mut rng, b, k, r, (false, false));
     // Field s of scene b keeps the rays where (ray + 3·s + b) % 4 != 0, the background all.
     let keeps = |bi: usize, si: usize, ri: usize| si == 0 || !(ri + 3 * si + bi).is_multiple_of(4);
     let support: Vec<Vec<u32>> = (0..b * s)
@@ -490,7 +561,7 @@ fn a_full_support_changes_nothing() {
     let mut rng = StdRng::seed_from_u64(8);
     let fg = Var::from_vec(normal(&mut rng, k * d, 1.0), (1, k, d), &Device::Cpu).unwrap();
     let bg = Var::from_vec(normal(&mut rng, d, 1.0), (1, d), &Device::Cpu).unwrap();
-    let (frames, o, dir) = scene(&mut rng, k, r, false);
+    let (frames, o, dir) = scene(&mut rng, k, r, (false, false));
     let base_rays = RayBatch::new(
         &cfg,
         &[SceneRays {

@@ -193,6 +193,54 @@ fn light_field_with_shadows_matches_candle() {
     }
 }
 
+/// With `shadow_reach`, the fast renderer leaves out the same shadow lines as the training
+/// code: the same render, and some ground rays without the shadow they had without a reach.
+#[test]
+fn light_field_with_a_shadow_reach_matches_candle() {
+    let strong = |overrides: &[&str]| {
+        let overrides: Vec<String> = overrides.iter().map(|s| s.to_string()).collect();
+        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        let w: Vec<f32> = noise(cfg.lfn_features, 5)
+            .iter()
+            .map(|v| 0.03 * v)
+            .collect();
+        let dev = candle_core::Device::Cpu;
+        Colf::init(&cfg, 3)
+            .unwrap()
+            .with_tensor(
+                "heads.shadow.bias",
+                candle_core::Tensor::new(&[-0.1f32], &dev).unwrap(),
+            )
+            .unwrap()
+            .with_tensor(
+                "heads.shadow.weight",
+                candle_core::Tensor::from_vec(w, (1, cfg.lfn_features), &dev).unwrap(),
+            )
+            .unwrap()
+    };
+    let light = ["shadow_head=true", "shadow_light=[30, 55]"];
+    let free = strong(&light);
+    let bounded = strong(&[light[0], light[1], "shadow_reach=2.5"]);
+    compare_model(&bounded, 4, 500, 2e-3);
+    let latents: Vec<Vec<f32>> = (0..4).map(|i| noise(64, 10 + i)).collect();
+    let (frames, origins, dirs) = scene(4, 500);
+    let shadow = |model: &Colf| {
+        let prepared = model.prepare(&latents, &noise(64, 7)).unwrap();
+        let renderer = FastRenderer::new(model, &prepared, &frames).unwrap();
+        renderer.render(&origins, &dirs, None, None).unwrap().shadow
+    };
+    let (all, near) = (shadow(&free), shadow(&bounded));
+    let cut = near
+        .iter()
+        .zip(&all)
+        .filter(|(n, a)| **n == 0.0 && **a > 0.0)
+        .count();
+    assert!(cut > 100, "{cut} shadow lines left out");
+    for (n, a) in near.iter().zip(&all) {
+        assert!(*n == 0.0 || n == a, "{n} vs {a}");
+    }
+}
+
 #[test]
 fn volumetric_matches_candle() {
     compare(&Config::volumetric(), 3, 40, 2e-3);

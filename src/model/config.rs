@@ -123,6 +123,15 @@ pub struct Config {
     /// light-field evaluation per ray and slot. Absent = shadows read from the ray itself.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shadow_light: Option<[f64; 2]>,
+    /// With `shadow_light`: a foreground slot casts no shadow on a ray whose shadow line passes
+    /// farther than this from the slot's frame origin (frame units; 0 = no bound). Otherwise a
+    /// slot's light field must learn that lines far from its object carry no shadow, and every
+    /// such line costs an evaluation: on clevr567, lines beyond 5 units are over half of them
+    /// and their learnt σ averages 10⁻⁵ (`docs/speed.md`). Decided from the encoded line's
+    /// bounded moment ([`Config::shadow_reach_bound`]), so the decode kernel, the candle
+    /// reference and the renderers skip the same lines. Absent in older files (= 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub shadow_reach: f64,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -273,6 +282,7 @@ impl Config {
             frame_ground_height: 0.0,
             shadow_head: false,
             shadow_light: None,
+            shadow_reach: 0.0,
             volumetric: None,
             inference: None,
         }
@@ -329,6 +339,17 @@ impl Config {
     pub fn default_inference(&self) -> InferenceConfig {
         self.inference
             .unwrap_or(InferenceConfig::one_pass(self.default_slots))
+    }
+
+    /// With `shadow_reach` = ρ: the largest squared bounded moment |m̂|² of a shadow line that
+    /// is evaluated. The encoding stores m̂ = (m/s)/√(1 + |m/s|²), |m| the line's distance from
+    /// the frame origin and s `scene_scale` (`rays.rs`), so |m| ≤ ρ ⟺ |m̂|² ≤ (ρ/s)²/(1 + (ρ/s)²).
+    /// None: every shadow line is evaluated.
+    pub fn shadow_reach_bound(&self) -> Option<f32> {
+        (self.shadow_reach > 0.0 && self.shadow_light.is_some()).then(|| {
+            let q = (self.shadow_reach / self.scene_scale).powi(2);
+            (q / (1.0 + q)) as f32
+        })
     }
 
     /// Applies `key=value` overrides (the value is JSON, or else a bare string) to this config,
@@ -428,6 +449,13 @@ impl Config {
             if !(azimuth.is_finite() && elevation > 0.0 && elevation <= 90.0) {
                 bail!("model config: `shadow_light` must be [azimuth, elevation] in degrees with 0 < elevation ≤ 90");
             }
+        }
+        if self.shadow_reach != 0.0
+            && !(self.shadow_reach.is_finite()
+                && self.shadow_reach > 0.0
+                && self.shadow_light.is_some())
+        {
+            bail!("model config: `shadow_reach` must be a positive distance, and needs `shadow_light`");
         }
         if let Some(v) = &self.volumetric {
             if self.shadow_head {

@@ -33,7 +33,7 @@ use super::config::Config;
 use super::heads::SHADOW_LOGIT_GAIN;
 use super::light_field::SlotWeights;
 use super::net::{Decoded, LightFieldDecoder};
-use super::rays::RayBatch;
+use super::rays::{within_shadow_reach, RayBatch};
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Storage, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -219,6 +219,8 @@ pub struct DecodeShape {
     /// Shadows read on each ray's shadow line (a second light-field pass), not on the ray.
     pub shadow_lines: bool,
     pub scene_scale: f32,
+    /// With shadow lines, `Config::shadow_reach_bound`: lines beyond it are not evaluated.
+    pub shadow_reach: Option<f32>,
 }
 
 impl DecodeShape {
@@ -234,6 +236,7 @@ impl DecodeShape {
             shared: SharedLayout::new(cfg),
             shadow_lines: cfg.shadow_head && cfg.shadow_light.is_some(),
             scene_scale: cfg.scene_scale as f32,
+            shadow_reach: cfg.shadow_reach_bound(),
         }
     }
 
@@ -584,9 +587,15 @@ struct FieldPass {
     /// sigmoid of the colour head [R, 3].
     rgb: Vec<f32>,
     ordering: Activations,
-    /// The shadow-line pass (foreground fields with shadow lines).
+    /// The shadow-line pass (foreground fields with shadow lines), on the shadow rows.
     shadow_lfn: Option<Activations>,
-    /// w·f + b of the shadow head [R] (foreground fields with a shadow head).
+    /// With shadow lines: the rows whose line is evaluated — on the ground (elsewhere σ is 0)
+    /// and within `shadow_reach` — in order; None: every row.
+    shadow_rows: Option<Vec<u32>>,
+    /// With `shadow_rows`: those rows' shadow lines, gathered.
+    shadow_inputs: Option<Vec<f32>>,
+    /// w·f + b of the shadow head (foreground fields with a shadow head), per shadow row
+    /// (with shadow lines) or per row.
     shadow_affine: Vec<f32>,
     /// σ [R] (0 for the background and for rays off the ground).
     sigma: Vec<f32>,
@@ -623,6 +632,11 @@ impl FieldPass {
     /// Number of rows.
     fn len(&self) -> usize {
         self.sigma.len()
+    }
+
+    /// The row of shadow row `j`.
+    fn shadow_row(&self, j: usize) -> usize {
+        self.shadow_rows.as_ref().map_or(j, |rows| rows[j] as usize)
     }
 }
 
@@ -835,8 +849,33 @@ impl DecodeOp {
         let x_rows: &[f32] = x.as_deref().unwrap_or(x_all);
         let line_rows = pass.line_inputs.take();
         let lines: Option<&[f32]> = line_rows.as_deref().or(lines_all);
-        if lines.is_some() {
-            pass.shadow_lfn = Some(Activations::new(&sh.field, n_rows));
+        let b0 = u / sh.fields * r;
+        let ground = |i: usize| match (sh.shadow_lines, rays.on_ground) {
+            (true, Some(g)) => g[b0 + active.map_or(i, |rows| rows[i] as usize)],
+            _ => 1.0,
+        };
+        // The shadow lines worth evaluating: σ is 0 off the ground and beyond the reach.
+        if let Some(lines) = lines {
+            let kept: Vec<u32> = (0..n_rows)
+                .filter(|&i| {
+                    ground(i) != 0.0
+                        && within_shadow_reach(
+                            &lines[i * in_dim..(i + 1) * in_dim],
+                            sh.shadow_reach,
+                        )
+                })
+                .map(|i| i as u32)
+                .collect();
+            if kept.len() < n_rows {
+                pass.shadow_inputs = Some(gather(lines, &kept));
+                pass.shadow_rows = Some(kept);
+            }
+        }
+        let n_shadow = pass.shadow_rows.as_ref().map_or(n_rows, Vec::len);
+        let shadow_x = pass.shadow_inputs.take();
+        let shadow_lines: Option<&[f32]> = shadow_x.as_deref().or(lines);
+        if shadow_lines.is_some() {
+            pass.shadow_lfn = Some(Activations::new(&sh.field, n_shadow));
         }
         let mut r0 = 0;
         while r0 < n_rows {
@@ -852,10 +891,15 @@ impl DecodeOp {
                 r0,
                 n,
             );
-            if let (Some(lines), Some(acts)) = (lines, pass.shadow_lfn.as_mut()) {
-                mlp_forward(&sh.field, params, lines, acts, r0, n);
-            }
             r0 += n;
+        }
+        if let (Some(lines), Some(acts)) = (shadow_lines, pass.shadow_lfn.as_mut()) {
+            let mut j0 = 0;
+            while j0 < n_shadow {
+                let n = CHUNK.min(n_shadow - j0);
+                mlp_forward(&sh.field, params, lines, acts, j0, n);
+                j0 += n;
+            }
         }
         for (c, l) in pass.rgb.iter_mut().zip(pass.color.output()) {
             *c = sigmoid(*l);
@@ -869,21 +913,18 @@ impl DecodeOp {
                 Some(acts) => acts.output(),
                 None => pass.lfn.output(),
             };
-            let b0 = u / sh.fields * r;
             pass.shadow_affine = features
                 .chunks_exact(f)
                 .map(|row| row.iter().zip(w).map(|(a, b)| a * b).sum::<f32>() + bias)
                 .collect();
-            for i in 0..n_rows {
-                let ground = match (sh.shadow_lines, rays.on_ground) {
-                    (true, Some(g)) => g[b0 + pass.ray(i)],
-                    _ => 1.0,
-                };
-                pass.sigma[i] = softplus(SHADOW_LOGIT_GAIN as f32 * pass.shadow_affine[i]) * ground;
+            for (j, a) in pass.shadow_affine.iter().enumerate() {
+                let i = pass.shadow_row(j);
+                pass.sigma[i] = softplus(SHADOW_LOGIT_GAIN as f32 * a) * ground(i);
             }
         }
         pass.inputs = x;
         pass.line_inputs = line_rows;
+        pass.shadow_inputs = shadow_x;
         pass
     }
 
@@ -1385,10 +1426,11 @@ impl DecodeOp {
             .lines
             .filter(|_| casts)
             .map(|l| &l[u * r * in_dim..(u + 1) * r * in_dim]));
-        let mut g_affine = vec![0f32; CHUNK];
         let mut g_ordering = vec![0f32; CHUNK];
-        // With a support, the rays' gradients go through a chunk buffer to their rays' rows.
-        let mut dx_rows = vec![0f32; if sparse { CHUNK * in_dim } else { 0 }];
+        // With a support or shadow rows, the rays' gradients go through a chunk buffer to
+        // their rays' rows.
+        let mut dx_rows = vec![0f32; CHUNK * in_dim];
+        let ray_of_row = |i: usize| pass.ray(i);
         let mut r0 = 0;
         while r0 < n_rows {
             let n = CHUNK.min(n_rows - r0);
@@ -1429,59 +1471,32 @@ impl DecodeOp {
             for (a, b) in d_features[..n * f_dim].iter_mut().zip(&d_head[..n * f_dim]) {
                 *a += b;
             }
-            // Shadow head: σ = softplus(g·(w·f + b))·ground.
-            let shadow_features = if let (true, Some((w, bias))) = (casts, sh.shared.shadow) {
-                let gain = SHADOW_LOGIT_GAIN as f32;
-                for (i, ga) in g_affine[..n].iter_mut().enumerate() {
-                    let ray = pass.ray(r0 + i);
-                    let ground = match (sh.shadow_lines, rays.on_ground) {
-                        (true, Some(g)) => g[b0 + ray],
-                        _ => 1.0,
-                    };
-                    let a = pass.shadow_affine[r0 + i];
-                    *ga = grads.sigma[ray] * ground * gain * sigmoid(gain * a);
-                }
-                let source = match &pass.shadow_lfn {
-                    Some(acts) => acts.output(),
-                    None => features,
-                };
+            // Shadow head read from the ray's own features: σ = softplus(g·(w·f + b))·ground.
+            if let (true, None, Some((w, bias))) = (casts, &pass.shadow_lfn, sh.shared.shadow) {
                 for i in 0..n {
-                    let ga = g_affine[i];
+                    let ga = self.shadow_affine_grad(pass, r0 + i, b0, rays, &grads);
                     d_shared[bias] += ga;
-                    let row = &source[(r0 + i) * f_dim..(r0 + i + 1) * f_dim];
+                    let row = &features[(r0 + i) * f_dim..(r0 + i + 1) * f_dim];
                     for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(row) {
                         *d += ga * v;
                     }
-                }
-                let w = &shared[w..w + f_dim];
-                if pass.shadow_lfn.is_some() {
-                    // The shadow line's own light-field pass receives it.
-                    for i in 0..n {
-                        for (d, wv) in d_head[i * f_dim..(i + 1) * f_dim].iter_mut().zip(w) {
-                            *d = g_affine[i] * wv;
-                        }
+                    for (d, wv) in d_features[i * f_dim..(i + 1) * f_dim]
+                        .iter_mut()
+                        .zip(&shared[w..w + f_dim])
+                    {
+                        *d += ga * wv;
                     }
-                    true
-                } else {
-                    for i in 0..n {
-                        for (d, wv) in d_features[i * f_dim..(i + 1) * f_dim].iter_mut().zip(w) {
-                            *d += g_affine[i] * wv;
-                        }
-                    }
-                    false
                 }
-            } else {
-                false
-            };
-            // The light field on the ray, and on its shadow line.
-            let rows = LfnRows {
-                pass,
+            }
+            // The light field on the ray.
+            LfnRows {
                 params,
                 r0,
                 n,
                 in_dim,
-            };
-            rows.backward(
+                ray_of: sparse.then_some(&ray_of_row as &dyn Fn(usize) -> usize),
+            }
+            .backward(
                 &sh.field,
                 x,
                 &pass.lfn,
@@ -1491,8 +1506,44 @@ impl DecodeOp {
                 &mut dx_rows,
                 &mut scratch,
             );
-            if let (true, Some(lines), Some(acts)) = (shadow_features, lines, &pass.shadow_lfn) {
-                rows.backward(
+            r0 += n;
+        }
+        // The shadow lines' light-field pass, on its own rows: σ = softplus(g·(w·f + b))·ground.
+        if let (Some(acts), Some((w, bias))) = (&pass.shadow_lfn, sh.shared.shadow) {
+            let lines = pass
+                .shadow_inputs
+                .as_deref()
+                .or(lines)
+                .expect("shadow lines");
+            let sparse_lines = sparse || pass.shadow_rows.is_some();
+            let ray_of = |j: usize| pass.ray(pass.shadow_row(j));
+            let source = acts.output();
+            let n_shadow = pass.shadow_rows.as_ref().map_or(n_rows, Vec::len);
+            let mut j0 = 0;
+            while j0 < n_shadow {
+                let n = CHUNK.min(n_shadow - j0);
+                for i in 0..n {
+                    let ga = self.shadow_affine_grad(pass, j0 + i, b0, rays, &grads);
+                    d_shared[bias] += ga;
+                    let row = &source[(j0 + i) * f_dim..(j0 + i + 1) * f_dim];
+                    for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(row) {
+                        *d += ga * v;
+                    }
+                    for (d, wv) in d_head[i * f_dim..(i + 1) * f_dim]
+                        .iter_mut()
+                        .zip(&shared[w..w + f_dim])
+                    {
+                        *d = ga * wv;
+                    }
+                }
+                LfnRows {
+                    params,
+                    r0: j0,
+                    n,
+                    in_dim,
+                    ray_of: sparse_lines.then_some(&ray_of as &dyn Fn(usize) -> usize),
+                }
+                .backward(
                     &sh.field,
                     lines,
                     acts,
@@ -1502,20 +1553,46 @@ impl DecodeOp {
                     &mut dx_rows,
                     &mut scratch,
                 );
+                j0 += n;
             }
-            r0 += n;
         }
         d_shared
+    }
+
+    /// dL/d(w·f + b) of the shadow head on its row `j` (a shadow row with shadow lines, else
+    /// a row): through σ = softplus(g·a)·ground.
+    fn shadow_affine_grad(
+        &self,
+        pass: &FieldPass,
+        j: usize,
+        b0: usize,
+        rays: &Rays,
+        grads: &FieldGrads,
+    ) -> f32 {
+        let sh = &self.shape;
+        let gain = SHADOW_LOGIT_GAIN as f32;
+        let ray = pass.ray(if pass.shadow_lfn.is_some() {
+            pass.shadow_row(j)
+        } else {
+            j
+        });
+        let ground = match (sh.shadow_lines, rays.on_ground) {
+            (true, Some(g)) => g[b0 + ray],
+            _ => 1.0,
+        };
+        let a = pass.shadow_affine[j];
+        grads.sigma[ray] * ground * gain * sigmoid(gain * a)
     }
 }
 
 /// Rows [r0, r0 + n) of a field pass, for the light field's backward.
 struct LfnRows<'a> {
-    pass: &'a FieldPass,
     params: &'a [f32],
     r0: usize,
     n: usize,
     in_dim: usize,
+    /// The ray of each row when rows are not rays (a support, or shadow rows); None: row = ray.
+    ray_of: Option<&'a dyn Fn(usize) -> usize>,
 }
 
 impl LfnRows<'_> {
@@ -1551,17 +1628,17 @@ impl LfnRows<'_> {
         };
         match d_rays {
             None => run(None, d_params, scratch),
-            Some(d) if self.pass.rows.is_none() => {
-                run(Some(&mut d[r0 * in_dim..]), d_params, scratch)
-            }
-            Some(d) => {
-                run(Some(&mut dx_rows[..]), d_params, scratch);
-                for i in 0..n {
-                    let ray = self.pass.ray(r0 + i);
-                    d[ray * in_dim..(ray + 1) * in_dim]
-                        .copy_from_slice(&dx_rows[i * in_dim..(i + 1) * in_dim]);
+            Some(d) => match self.ray_of {
+                None => run(Some(&mut d[r0 * in_dim..]), d_params, scratch),
+                Some(ray_of) => {
+                    run(Some(&mut dx_rows[..]), d_params, scratch);
+                    for i in 0..n {
+                        let ray = ray_of(r0 + i);
+                        d[ray * in_dim..(ray + 1) * in_dim]
+                            .copy_from_slice(&dx_rows[i * in_dim..(i + 1) * in_dim]);
+                    }
                 }
-            }
+            },
         }
     }
 }

@@ -234,9 +234,29 @@ impl ColfNet {
                 .heads
                 .shadow(&fields.forward(lines)?)?
                 .map(|sigma| {
-                    sigma
+                    let sigma = sigma
                         .reshape((b, s, r))?
-                        .broadcast_mul(&on_ground.reshape((b, 1, r))?)
+                        .broadcast_mul(&on_ground.reshape((b, 1, r))?)?;
+                    match self.cfg.shadow_reach_bound() {
+                        // Lines beyond `shadow_reach` cast nothing (and pass no gradient).
+                        Some(bound) => {
+                            let in_dim = lines.dim(2)?;
+                            let reach: Vec<f32> = lines
+                                .detach()
+                                .flatten_all()?
+                                .to_vec1::<f32>()?
+                                .chunks_exact(in_dim)
+                                .map(|line| {
+                                    f32::from(u8::from(rays::within_shadow_reach(
+                                        line,
+                                        Some(bound),
+                                    )))
+                                })
+                                .collect();
+                            sigma.mul(&Tensor::from_vec(reach, (b, s, r), sigma.device())?)
+                        }
+                        None => Ok(sigma),
+                    }
                 })
                 .transpose()?,
             None => lf.heads.shadow(&features)?,

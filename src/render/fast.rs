@@ -29,7 +29,7 @@
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
 use crate::model::heads::shadow_host;
-use crate::model::rays::{encode_line, light_direction, shadow_line};
+use crate::model::rays::{encode_line, light_direction, shadow_line, within_shadow_reach};
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -180,6 +180,8 @@ struct ShadowHost {
     bias: f32,
     /// Toward the light, with `Config::shadow_light`.
     to_light: Option<DVec3>,
+    /// `Config::shadow_reach_bound`: shadow lines beyond it cast nothing.
+    reach: Option<f32>,
 }
 
 impl ShadowHost {
@@ -278,6 +280,7 @@ impl LightFieldHost {
                 weight: logit.w,
                 bias: logit.b[0],
                 to_light: cfg.shadow_light.map(light_direction),
+                reach: cfg.shadow_reach_bound(),
             })
         } else {
             None
@@ -297,6 +300,7 @@ impl LightFieldHost {
             shift_cfg: Config {
                 ray_fourier_freqs: 0,
                 shadow_light: None,
+                shadow_reach: 0.0,
                 ..cfg.clone()
             },
         })
@@ -745,7 +749,10 @@ impl FastRenderer {
                     let j = sc.lit_rows.len();
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
                     encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
-                    sc.lit_rows.push(ri);
+                    // A line beyond the slot's reach casts nothing: not evaluated.
+                    if within_shadow_reach(out, sh.reach) {
+                        sc.lit_rows.push(ri);
+                    }
                 }
             }
             if !sc.lit_rows.is_empty() {
