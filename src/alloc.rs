@@ -36,10 +36,23 @@ pub fn tune_for_tensors() {
 /// one (`docs/speed.md`, "Threads").
 pub const CANDLE_SPIN_LIMIT: &str = "200";
 
-/// Sets [`CANDLE_SPIN_LIMIT`] for this process unless the environment sets it. Call before any
-/// tensor work (candle reads it when its pool starts), while the process has one thread.
+/// Threads of candle's element-wise pool unless the user set `CANDLE_NUM_THREADS`: one, the
+/// calling thread. colf's heavy work runs on rayon's threads (the decoder kernel, the fast
+/// renderer, matmuls through `gemm`); the element-wise ops between them are small, and a second
+/// pool thread only waited at candle's barrier for the rest of each op (perf: the caller spent
+/// about half its samples spinning there). Measured on 2 cores: a training step 99 ms with one
+/// pool thread against 106–112 ms with two, and the default encoding 1.62–1.72 s against 1.83 s
+/// wall (`docs/speed.md`, "Threads").
+pub const CANDLE_POOL_THREADS: &str = "1";
+
+/// Sets [`CANDLE_SPIN_LIMIT`] and [`CANDLE_POOL_THREADS`] for this process unless the environment
+/// sets them. Call before any tensor work (candle reads them when its pool starts), while the
+/// process has one thread.
 pub fn tune_thread_pools() {
     if std::env::var_os("CANDLE_BARRIER_POOL_SPIN_LIMIT").is_none() {
         std::env::set_var("CANDLE_BARRIER_POOL_SPIN_LIMIT", CANDLE_SPIN_LIMIT);
+    }
+    if std::env::var_os("CANDLE_NUM_THREADS").is_none() {
+        std::env::set_var("CANDLE_NUM_THREADS", CANDLE_POOL_THREADS);
     }
 }
