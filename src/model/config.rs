@@ -347,8 +347,9 @@ impl Config {
     /// None: every shadow line is evaluated.
     pub fn shadow_reach_bound(&self) -> Option<f32> {
         (self.shadow_reach > 0.0 && self.shadow_light.is_some()).then(|| {
-            let q = (self.shadow_reach / self.scene_scale).powi(2);
-            (q / (1.0 + q)) as f32
+            // (ρ/s)²/(1 + (ρ/s)²) written so that a huge reach gives 1 (every line), not ∞/∞.
+            let inverse = (self.scene_scale / self.shadow_reach).powi(2);
+            (1.0 / (1.0 + inverse)) as f32
         })
     }
 
@@ -605,5 +606,35 @@ mod tests {
         assert!(Config::small()
             .with_overrides(&["slot_dim=0".into()])
             .is_err());
+    }
+    /// The reach's bound on the encoded moment: the distance it stands for at ordinary reaches,
+    /// every line at a huge one, none but the origin's at a tiny one; refused without a light,
+    /// negative or not finite; absent from the JSON when 0, so older models keep their bytes.
+    #[test]
+    fn shadow_reach_bounds_the_encoded_moment_at_every_scale() {
+        let lit = Config::small()
+            .with_overrides(&["shadow_head=true".into(), "shadow_light=[30, 55]".into()])
+            .unwrap();
+        assert_eq!(lit.shadow_reach_bound(), None);
+        assert!(!lit.to_json().contains("shadow_reach"));
+        let with = |reach: f64| Config {
+            shadow_reach: reach,
+            ..lit.clone()
+        };
+        // |m̂| = (ρ/s)/√(1 + (ρ/s)²) at the reach itself.
+        let q = with(3.0).shadow_reach_bound().unwrap() as f64;
+        let r = 3.0 / lit.scene_scale;
+        assert!((q - r * r / (1.0 + r * r)).abs() < 1e-7);
+        assert_eq!(with(1e300).shadow_reach_bound(), Some(1.0));
+        assert_eq!(with(1e-300).shadow_reach_bound(), Some(0.0));
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            assert!(with(bad).validate().is_err(), "{bad}");
+        }
+        let dark = Config {
+            shadow_reach: 3.0,
+            ..Config::small()
+        };
+        assert!(dark.validate().is_err());
+        assert!(with(3.0).validate().is_ok());
     }
 }
