@@ -430,6 +430,20 @@ fn differentiable_rays_as_in_refinement() {
 /// The kernel's result does not depend on the number of threads: the same bytes on 1 and 2.
 #[test]
 fn same_bytes_whatever_the_thread_count() {
+    // With and without a shadow reach (whose shadow rows are gathered per field), some rays
+    // off the ground.
+    for cfg in [
+        base(),
+        Config {
+            shadow_reach: 2.5,
+            ..base()
+        },
+    ] {
+        same_bytes_on_1_and_2_threads(&cfg);
+    }
+}
+
+fn same_bytes_on_1_and_2_threads(cfg: &Config) {
     let bytes = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -439,7 +453,8 @@ fn same_bytes_whatever_the_thread_count() {
             let r = run(
                 &Case {
                     rays: 300,
-                    ..case(base(), 7)
+                    sky: true,
+                    ..case(cfg.clone(), 7)
                 },
                 false,
             );
