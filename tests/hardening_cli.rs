@@ -540,6 +540,8 @@ fn usage_errors_exit_2() {
         ("encode", vec![GOOD_PNG, "--slots", "1025"]),
         ("encode", vec![GOOD_PNG, "--tries", "0"]),
         ("encode", vec![GOOD_PNG, "--refine-lr", "1e38"]),
+        ("encode", vec![GOOD_PNG, "--refine-shadow-reach", "-1"]),
+        ("encode", vec![GOOD_PNG, "--refine-shadow-reach", "nan"]),
         ("sheet", vec![GOOD_PNG, "--scale", "0", "-o", "s.png"]),
     ];
     for (stage, args) in cases {

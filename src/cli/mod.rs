@@ -275,7 +275,7 @@ pub struct FitArgs {
     /// own; 0: every line). Far lines carry almost no shadow: the default saves 18 % of the
     /// default encoding's time for -0.003 dB on held-out scenes; the result is rendered with the
     /// model's own shadows (docs/speed.md).
-    #[arg(long, default_value_t = crate::encode::refine::DEFAULT_REFINE_SHADOW_REACH, value_name = "D", value_parser = parse::non_negative)]
+    #[arg(long, default_value_t = crate::encode::refine::DEFAULT_REFINE_SHADOW_REACH, value_name = "D", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_shadow_reach: f64,
 }
 
