@@ -1472,20 +1472,17 @@ impl DecodeOp {
                 *a += b;
             }
             // Shadow head read from the ray's own features: σ = softplus(g·(w·f + b))·ground.
-            if let (true, None, Some((w, bias))) = (casts, &pass.shadow_lfn, sh.shared.shadow) {
+            if let (true, None, Some(head)) = (casts, &pass.shadow_lfn, sh.shared.shadow) {
                 for i in 0..n {
                     let ga = self.shadow_affine_grad(pass, r0 + i, b0, rays, &grads);
-                    d_shared[bias] += ga;
-                    let row = &features[(r0 + i) * f_dim..(r0 + i + 1) * f_dim];
-                    for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(row) {
-                        *d += ga * v;
-                    }
-                    for (d, wv) in d_features[i * f_dim..(i + 1) * f_dim]
-                        .iter_mut()
-                        .zip(&shared[w..w + f_dim])
-                    {
-                        *d += ga * wv;
-                    }
+                    shadow_head_backward(
+                        ga,
+                        &features[(r0 + i) * f_dim..(r0 + i + 1) * f_dim],
+                        head,
+                        shared,
+                        &mut d_shared,
+                        &mut d_features[i * f_dim..(i + 1) * f_dim],
+                    );
                 }
             }
             // The light field on the ray.
@@ -1509,7 +1506,7 @@ impl DecodeOp {
             r0 += n;
         }
         // The shadow lines' light-field pass, on its own rows: σ = softplus(g·(w·f + b))·ground.
-        if let (Some(acts), Some((w, bias))) = (&pass.shadow_lfn, sh.shared.shadow) {
+        if let (Some(acts), Some(head)) = (&pass.shadow_lfn, sh.shared.shadow) {
             let lines = pass
                 .shadow_inputs
                 .as_deref()
@@ -1522,19 +1519,18 @@ impl DecodeOp {
             let mut j0 = 0;
             while j0 < n_shadow {
                 let n = CHUNK.min(n_shadow - j0);
+                // The line's features feed only the shadow head: their gradient starts at 0.
+                d_head[..n * f_dim].fill(0.0);
                 for i in 0..n {
                     let ga = self.shadow_affine_grad(pass, j0 + i, b0, rays, &grads);
-                    d_shared[bias] += ga;
-                    let row = &source[(j0 + i) * f_dim..(j0 + i + 1) * f_dim];
-                    for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(row) {
-                        *d += ga * v;
-                    }
-                    for (d, wv) in d_head[i * f_dim..(i + 1) * f_dim]
-                        .iter_mut()
-                        .zip(&shared[w..w + f_dim])
-                    {
-                        *d = ga * wv;
-                    }
+                    shadow_head_backward(
+                        ga,
+                        &source[(j0 + i) * f_dim..(j0 + i + 1) * f_dim],
+                        head,
+                        shared,
+                        &mut d_shared,
+                        &mut d_head[i * f_dim..(i + 1) * f_dim],
+                    );
                 }
                 LfnRows {
                     params,
@@ -1582,6 +1578,26 @@ impl DecodeOp {
         };
         let a = pass.shadow_affine[j];
         grads.sigma[ray] * ground * gain * sigmoid(gain * a)
+    }
+}
+
+/// The shadow head's backward on one row, given `ga` = dL/d(w·f + b): adds ga·f to w's and ga to
+/// b's gradient in `d_shared` (`head` = their offsets) and ga·w to the features' gradient.
+fn shadow_head_backward(
+    ga: f32,
+    feature: &[f32],
+    (w, bias): (usize, usize),
+    shared: &[f32],
+    d_shared: &mut [f32],
+    d_feature: &mut [f32],
+) {
+    let f_dim = feature.len();
+    d_shared[bias] += ga;
+    for (d, v) in d_shared[w..w + f_dim].iter_mut().zip(feature) {
+        *d += ga * v;
+    }
+    for (d, wv) in d_feature.iter_mut().zip(&shared[w..w + f_dim]) {
+        *d += ga * wv;
     }
 }
 
