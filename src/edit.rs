@@ -16,10 +16,14 @@ pub enum Selection {
     Indices(Vec<usize>),
     /// The one slot whose frame origin lies nearest `point` (the first on ties), refused when
     /// it is farther than `within`: scripts that name an object by where it stands, not by
-    /// the index an encoding happened to give it.
+    /// the index an encoding happened to give it. With `seen_from`, the distance is the frame
+    /// origin's from the line of sight from that point through `point` (in front of it): an
+    /// encoding from one view knows an object's direction well but its depth only roughly, so
+    /// the slot that draws it lies on that line, not necessarily near `point`.
     Near {
         point: DVec3,
         within: Option<f64>,
+        seen_from: Option<DVec3>,
     },
 }
 
@@ -184,13 +188,28 @@ impl Fields<'_> {
     }
 }
 
-/// `{"near": [x, y, z], "within": r}` (`within` optional, a positive number).
+/// `{"near": [x, y, z], "within": r, "seen_from": [x, y, z]}` (`within` optional, a positive
+/// number; `seen_from` optional, a point other than `near`).
 fn near_selection(field: &str, near: &Map<String, Value>) -> Result<Selection> {
-    if let Some(extra) = near.keys().find(|k| *k != "near" && *k != "within") {
-        bail!("field `{field}`: unknown key `{extra}` (allowed: near, within)");
+    if let Some(extra) = near
+        .keys()
+        .find(|k| !["near", "within", "seen_from"].contains(&k.as_str()))
+    {
+        bail!("field `{field}`: unknown key `{extra}` (allowed: near, within, seen_from)");
     }
     let f = Fields { map: near };
     let point = f.vec3("near").with_context(|| format!("field `{field}`"))?;
+    let seen_from = if near.contains_key("seen_from") {
+        let eye = f
+            .vec3("seen_from")
+            .with_context(|| format!("field `{field}`"))?;
+        if (point - eye).length() <= 1e-9 * (1.0 + point.length()) {
+            bail!("field `{field}`: field `seen_from`: must differ from `near` (it is the start of the line of sight through it)");
+        }
+        Some(eye)
+    } else {
+        None
+    };
     let within = if near.contains_key("within") {
         let r = f
             .number("within")
@@ -202,7 +221,11 @@ fn near_selection(field: &str, near: &Map<String, Value>) -> Result<Selection> {
     } else {
         None
     };
-    Ok(Selection::Near { point, within })
+    Ok(Selection::Near {
+        point,
+        within,
+        seen_from,
+    })
 }
 
 /// Parses one op. The error is the text that follows `op N` in the message: `: …` before the
@@ -300,12 +323,35 @@ pub fn parse_edits(bytes: &[u8], name: &str) -> Result<Vec<Op>> {
         .collect()
 }
 
+/// The distance of `q` from the half-line that starts at `start` and runs along `direction`
+/// (not zero): from its foot on the line when that lies ahead of `start`, else from `start`.
+fn distance_to_half_line(q: DVec3, start: DVec3, direction: DVec3) -> f64 {
+    let along = direction.normalize();
+    let offset = q - start;
+    let ahead = offset.dot(along).max(0.0);
+    (offset - along * ahead).length()
+}
+
 /// The indices a selection names among `slots` as they stand; `All` → every slot.
 fn resolve(selection: &Selection, slots: &[Slot]) -> Result<Vec<usize>> {
     let count = slots.len();
     match selection {
-        Selection::Near { point, within } => {
-            let distance = |s: &Slot| (s.slot_to_world.w_axis.truncate() - *point).length();
+        Selection::Near {
+            point,
+            within,
+            seen_from,
+        } => {
+            let distance = |s: &Slot| {
+                let origin = s.slot_to_world.w_axis.truncate();
+                match seen_from {
+                    None => (origin - *point).length(),
+                    Some(eye) => distance_to_half_line(origin, *eye, *point - *eye),
+                }
+            };
+            let what = match seen_from {
+                None => "",
+                Some(_) => " on the line of sight",
+            };
             // `min_by` keeps the first of equal minima.
             let Some((nearest, d)) = slots
                 .iter()
@@ -322,7 +368,7 @@ fn resolve(selection: &Selection, slots: &[Slot]) -> Result<Vec<usize>> {
             };
             if let Some(r) = within.filter(|r| d > *r) {
                 bail!(
-                    "field `slots`: no slot within {r} of [{}, {}, {}] (the nearest, slot {nearest}, is {d:.3} away)",
+                    "field `slots`: no slot within {r}{what} of [{}, {}, {}] (the nearest, slot {nearest}, is {d:.3} away)",
                     point.x, point.y, point.z
                 );
             }
@@ -642,6 +688,58 @@ mod tests {
         ] {
             assert!(err(text).contains(why), "{}", err(text));
         }
+    }
+
+    /// `seen_from`: the distance is from the line of sight through `near`, so a slot placed at
+    /// the wrong depth along it is still found, and one beside it is not.
+    #[test]
+    fn slots_are_chosen_on_a_line_of_sight() {
+        let codes = sample(4); // origins (i, 0, 0)
+                               // Seen from (0, -4, 0), the line through (2, 4, 0) crosses y = 0 at x = 1: slot 1 lies
+                               // on it, though slot 2 is nearest the point itself.
+        let e = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"delete","slots":{"near":[2,4,0],"seen_from":[0,-4,0],"within":0.1}}]"#),
+            "e",
+        )
+        .unwrap();
+        let left: Vec<f64> = e.slots.iter().map(|s| s.slot_to_world.w_axis.x).collect();
+        assert_eq!(left, vec![0.0, 2.0, 3.0]);
+        // Without the line of sight the nearest to (2, 4, 0) is slot 2, 4 away.
+        let plain = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"delete","slots":{"near":[2,4,0]}}]"#),
+            "e",
+        )
+        .unwrap();
+        let left: Vec<f64> = plain
+            .slots
+            .iter()
+            .map(|s| s.slot_to_world.w_axis.x)
+            .collect();
+        assert_eq!(left, vec![0.0, 1.0, 3.0]);
+        // Behind the eye counts from the eye: looking away from every slot, the nearest is
+        // the one nearest the eye.
+        let behind = apply_edits(
+            &codes,
+            &ops(r#"[{"op":"delete","slots":{"near":[3.2,-8,0],"seen_from":[3.2,-4,0],"within":1}}]"#),
+            "e",
+        )
+        .unwrap_err();
+        assert!(
+            format!("{behind:#}").contains(
+                "no slot within 1 on the line of sight of [3.2, -8, 0] (the nearest, slot 3, is 4.005 away)"
+            ),
+            "{behind:#}"
+        );
+        assert!(
+            err(r#"[{"op":"delete","slots":{"near":[1,2,3],"seen_from":[1,2,3]}}]"#)
+                .contains("field `seen_from`: must differ from `near`"),
+        );
+        assert!(
+            err(r#"[{"op":"delete","slots":{"near":[1,2,3],"seen_from":[1,2]}}]"#)
+                .contains("field `seen_from`: expected an array of 3 numbers"),
+        );
     }
 
     #[test]

@@ -17,7 +17,9 @@ edited codes. Ops run in order; slot indices refer to the slots as they stand wh
 \"slots\": \"all\" selects every slot, and \"slots\": {\"near\": [x, y, z], \"within\": r} the one \
 slot whose frame origin (--inspect's `origin`) lies nearest that point (ties: the first; \"within\" \
 is optional and refuses a point with no slot that close), so a script can name an object by \
-where it stands; vectors are world units, angles degrees.\n\n\
+where it stands; with \"seen_from\": [x, y, z] (a camera's position) the distance is from the line \
+of sight from there through the point, as an encoding from one view knows an object's direction \
+better than its depth; vectors are world units, angles degrees.\n\n\
 EDITS is {\"ops\": [...]} or a bare array of ops:\n\n\
   {\"op\": \"translate\", \"slots\": [2], \"by\": [1, 0, 0]}\n\n\
   {\"op\": \"rotate\", \"slots\": [1], \"axis\": [0, 0, 1], \"degrees\": 90, \"pivot\": [0, 0, 0]}\n\n\

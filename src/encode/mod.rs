@@ -204,8 +204,12 @@ pub fn encode_once(
         opts.num_slots,
         seed,
     )?;
-    let frames =
-        crate::model::frames::slot_frames(model.config(), view.camera, &encoded.fg_centroid);
+    let frames = crate::model::frames::slot_frames(
+        model.config(),
+        view.camera,
+        &encoded.fg_centroid,
+        &encoded.fg_bottom,
+    );
     let slots = encoded
         .fg_latents
         .into_iter()

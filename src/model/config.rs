@@ -107,6 +107,15 @@ pub struct Config {
     /// the image (see `frames.rs`). 0 = off. Absent in older files (= 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub frame_ground_height: f64,
+    /// With `attention_frames`, scenes whose objects rest on the ground plane z = 0 seen from
+    /// a low camera (a street): each foreground frame's depth along its centroid ray is that of
+    /// the point where the ray through the lower edge of the slot's attention (the object's
+    /// contact with the ground) meets z = 0, instead of the scene centre's depth. Unlike
+    /// `frame_ground_height`, whose plane a low camera's rays to an object's centre graze, the
+    /// contact ray points at the ground below the object (`frames.rs`). Absent in older files
+    /// (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub frame_ground_contact: bool,
     /// Foreground slots cast shadows on the background: each slot's light field also gives a
     /// shadow density σ ≥ 0 per ray (`heads.shadow`), and the background's colour on a ray is
     /// multiplied by exp(−Σ σ) over the foreground slots. The shadow belongs to the object's
@@ -280,6 +289,7 @@ impl Config {
             fg_locality: 0.0,
             background_from_nearest_slot: false,
             frame_ground_height: 0.0,
+            frame_ground_contact: false,
             shadow_head: false,
             shadow_light: None,
             shadow_reach: 0.0,
@@ -431,6 +441,9 @@ impl Config {
         if !(self.frame_ground_height.is_finite() && self.frame_ground_height >= 0.0) {
             bail!("model config: `frame_ground_height` must be a non-negative number");
         }
+        if self.frame_ground_contact && self.frame_ground_height > 0.0 {
+            bail!("model config: `frame_ground_contact` and `frame_ground_height` both place frames on the ground: set one");
+        }
         if !(self.fg_locality.is_finite() && self.fg_locality >= 0.0) {
             bail!("model config: `fg_locality` must be a non-negative number");
         }
@@ -579,6 +592,11 @@ mod tests {
         let mut cfg = Config::small();
         cfg.scene_scale = f64::NAN;
         assert!(cfg.validate().is_err());
+        let mut cfg = Config::small();
+        cfg.frame_ground_contact = true;
+        assert!(cfg.validate().is_ok());
+        cfg.frame_ground_height = 0.5;
+        assert!(format!("{:#}", cfg.validate().unwrap_err()).contains("set one"));
         let json = Config::small()
             .to_json()
             .replace("\"slot_dim\"", "\"mystery\":1,\"slot_dim\"");

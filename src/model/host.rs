@@ -25,6 +25,8 @@ pub struct Encoded {
     pub slot_mass: Vec<f32>,
     /// Where each foreground slot attends: (x, y) in [0, 1] of the image (see `frames.rs`).
     pub fg_centroid: Vec<[f32; 2]>,
+    /// How far down the image each foreground slot's attention reaches, y in [0, 1].
+    pub fg_bottom: Vec<f32>,
 }
 
 /// Light fields ready to render: the hypernetworks' outputs for one background and K foreground
@@ -382,6 +384,7 @@ impl Colf {
                 .into_iter()
                 .map(|p| [p[0], p[1]])
                 .collect(),
+            fg_bottom: out.fg_bottom.squeeze(0)?.to_vec1::<f32>()?,
         };
         let finite = enc
             .bg_latent

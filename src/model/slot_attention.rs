@@ -110,6 +110,10 @@ pub struct SlotOutput {
     /// position (x right, y down, in [0, 1] of the image's width and height) in the last round
     /// [B, K, 2]; no gradient flows through it (it only places slot frames, see `frames.rs`).
     pub fg_centroid: Tensor,
+    /// How far down the image each foreground slot's attention reaches [B, K]: the mean
+    /// token row plus √3 standard deviations (the lower edge of a uniform spread), in [0, 1]
+    /// of the image's height; like `fg_centroid`, only for placing frames (`frames.rs`).
+    pub fg_bottom: Tensor,
     /// log of the last round's attention over the slots per token [B, N, 1 + K] (background
     /// first), by log-softmax (for losses on the attention).
     pub log_attention: Tensor,
@@ -128,6 +132,24 @@ fn token_positions(n_tokens: usize, device: &candle_core::Device) -> Result<Tens
         })
         .collect();
     Tensor::from_vec(xy, (n_tokens, 2), device)
+}
+
+/// Where slots attend, from their weights over a square grid of tokens [B, N, K] (summing to
+/// 1 over the tokens): the weighted mean token position (x, y) [B, K, 2], and how far down the
+/// attention reaches [B, K], the mean row plus √3 standard deviations (the lower edge of a
+/// uniform spread), in [0, 1].
+fn where_slots_attend(weights: &Tensor) -> Result<(Tensor, Tensor)> {
+    let grid = token_positions(weights.dim(1)?, weights.device())?; // [N, 2]
+    let per_slot = weights.t()?; // [B, K, N]
+    let centroid = per_slot.broadcast_matmul(&grid)?.contiguous()?;
+    // The rows' second moment from (y, y²) per token.
+    let y = grid.narrow(1, 1, 1)?;
+    let rows = Tensor::cat(&[&y, &y.sqr()?], 1)?;
+    let moments = per_slot.broadcast_matmul(&rows)?; // [B, K, 2]
+    let mean_y = moments.narrow(2, 0, 1)?;
+    let variance = (moments.narrow(2, 1, 1)? - mean_y.sqr()?)?.relu()?;
+    let bottom = (mean_y + (variance * 3.0)?.sqrt()?)?.clamp(0.0, 1.0)?;
+    Ok((centroid, bottom.squeeze(2)?.contiguous()?))
 }
 
 /// The slot encoder.
@@ -229,17 +251,20 @@ impl SlotAttention {
             Some(fg) => fg,
             None => Tensor::zeros((b, 0, d), tokens.dtype(), tokens.device())?,
         };
-        let fg_centroid = match token_weights {
+        let (fg_centroid, fg_bottom) = match token_weights {
+            // The foreground's columns of the full [B, N, S] weights, as the centroids were
+            // always read (the same bytes).
             Some(w) if k > 0 => {
-                // [B, S, N] · [N, 2] token positions → [B, S, 2], foreground part.
-                let grid = token_positions(n_tokens, tokens.device())?;
-                w.detach()
-                    .t()?
-                    .broadcast_matmul(&grid)?
-                    .narrow(1, 1, k)?
-                    .contiguous()?
+                let (centroid, bottom) = where_slots_attend(&w.detach())?;
+                (
+                    centroid.narrow(1, 1, k)?.contiguous()?,
+                    bottom.narrow(1, 1, k)?.contiguous()?,
+                )
             }
-            _ => Tensor::zeros((b, k, 2), tokens.dtype(), tokens.device())?,
+            _ => (
+                Tensor::zeros((b, k, 2), tokens.dtype(), tokens.device())?,
+                Tensor::zeros((b, k), tokens.dtype(), tokens.device())?,
+            ),
         };
         let log_attention = match last_logits {
             Some(l) => candle_nn::ops::log_softmax(&l, D::Minus1)?,
@@ -251,7 +276,36 @@ impl SlotAttention {
             fg_mass: mass.narrow(1, 1, k)?,
             bg_mass: mass.narrow(1, 0, 1)?.squeeze(1)?,
             fg_centroid,
+            fg_bottom,
             log_attention,
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A slot spread evenly over rows 2–5 and columns 1–2 of an 8×8 grid attends at their
+    /// centre, and reaches down to row 5's lower edge (y = 6/8) within the √3σ estimate of a
+    /// discrete spread; one on a single token reaches that token's centre.
+    #[test]
+    fn slots_attend_at_their_tokens_centre_and_reach_their_lower_edge() {
+        let mut w = vec![0f32; 64 * 2];
+        for row in 2..6 {
+            for col in 1..3 {
+                w[(row * 8 + col) * 2] = 1.0 / 8.0;
+            }
+        }
+        w[(7 * 8 + 7) * 2 + 1] = 1.0;
+        let weights = Tensor::from_vec(w, (1, 64, 2), &candle_core::Device::Cpu).unwrap();
+        let (centroid, bottom) = where_slots_attend(&weights).unwrap();
+        let centroid = centroid.to_vec3::<f32>().unwrap();
+        let bottom = bottom.to_vec2::<f32>().unwrap();
+        assert!((centroid[0][0][0] - 2.0 / 8.0).abs() < 1e-6);
+        assert!((centroid[0][0][1] - 4.0 / 8.0).abs() < 1e-6);
+        assert!((bottom[0][0] - 0.75).abs() < 0.01, "{}", bottom[0][0]);
+        assert!((centroid[0][1][0] - 7.5 / 8.0).abs() < 1e-6);
+        assert!((bottom[0][1] - 7.5 / 8.0).abs() < 1e-3, "{}", bottom[0][1]);
     }
 }

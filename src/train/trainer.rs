@@ -489,12 +489,13 @@ impl Trainer {
         let encoded = model.encode(&Tensor::cat(&images, 0)?, self.num_slots, rng)?;
         let fields = model.prepare(&encoded.fg, &encoded.bg)?;
         let centroids = encoded.fg_centroid.to_vec3::<f32>()?;
+        let bottoms = encoded.fg_bottom.to_vec2::<f32>()?;
         let frames: Vec<Vec<DMat4>> = samples
             .iter()
-            .zip(&centroids)
-            .map(|(s, c)| {
+            .zip(centroids.iter().zip(&bottoms))
+            .map(|(s, (c, bottom))| {
                 let c: Vec<[f32; 2]> = c.iter().map(|p| [p[0], p[1]]).collect();
-                crate::model::frames::slot_frames(cfg, &s.input_frame, &c)
+                crate::model::frames::slot_frames(cfg, &s.input_frame, &c, bottom)
             })
             .collect();
         let scene_rays: Vec<SceneRays> = samples
