@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -125,6 +125,15 @@ demo: build
 # large cyan one leaves a faint cyan haze (docs/training-log.md, run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
+
+# The same demo on a held-out Room-Chair scene at 128² (issue 40) with a room model (ROOM_MODEL,
+# make model-room-chair): the red chair nearest the camera deleted and the green one moved to
+# the back of the room (examples/demo-room-edits.json names them by where they stand), an orbit
+# at the rooms' camera distance and elevation.
+ROOM_MODEL ?= $(ROOM_RUN)/room-chair/r128.safetensors
+demo-room: build
+	test -f $(ROOM_MODEL) || { echo "demo-room: no room model at $(ROOM_MODEL): run make model-room-chair first, or set ROOM_MODEL" >&2; exit 1; }
+	$(call demo_steps,out/demo-room,--preset room-chair --size 128,--model $(ROOM_MODEL),examples/demo-room-edits.json,--size 128 --radius 8.5 --elevation 35)
 
 # A contact sheet of held-out scenes (issue 37): per scene a row of its four ground-truth views
 # then the model's renders of them (view 0 encoded with the model's default encoding, views 1–3
