@@ -5,9 +5,10 @@
 //! An object seen by two views then has two slots; keeping both would draw it twice and break
 //! every edit (moving one copy leaves the other). So the views' slots are **matched**: view by
 //! view, each slot set is rendered into every view taken so far, and two slots that cover the
-//! same pixels there (intersection over union of their label maps, summed over those views, at
-//! least [`MATCH_IOU`]) are one object, and so is a newcomer lying mostly inside one kept slot
-//! (a piece of an object its view split); the slot already kept stays, the newcomer goes. A slot
+//! same pixels there (intersection over union of their label maps, summed over the views where
+//! both draw, at least [`MATCH_IOU`]) are one object, and so is a newcomer lying mostly inside
+//! one kept slot (a piece of an object its view split); the slot already kept stays and the
+//! newcomer goes, unless the newcomer draws in more of the views (see [`Matching`]). A slot
 //! no earlier slot matches is an object only this view saw, and joins. The background is the
 //! first view's. Then the default encoding's refinement runs on all views at once (its rays
 //! per step are per view: V views, V times the pixels a step). With `agreed_slots`, what the
@@ -118,14 +119,18 @@ pub fn encode_views(
             (&newcomers, &newcomers_background),
             seen,
         )?;
-        report.matched += matched.iter().filter(|m| m.is_some()).count();
-        slots.extend(
-            newcomers
-                .into_iter()
-                .zip(matched)
-                .filter(|(_, m)| m.is_none())
-                .map(|(s, _)| s),
-        );
+        report.matched += matched.of.iter().filter(|m| m.is_some()).count();
+        for ((newcomer, of), takes_over) in newcomers
+            .into_iter()
+            .zip(matched.of)
+            .zip(matched.takes_over)
+        {
+            match of {
+                None => slots.push(newcomer),
+                Some(kept) if takes_over => slots[kept] = newcomer,
+                Some(_) => {}
+            }
+        }
     }
     // 3. All views at once: refinement.
     let all: Vec<&InputView> = views.iter().collect();
@@ -171,18 +176,32 @@ pub fn encode_views(
     Ok((codes, report))
 }
 
+/// How the newcomers of one view matched the slots kept so far.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Matching {
+    /// For each newcomer, the kept slot that draws the same object, if any.
+    pub of: Vec<Option<usize>>,
+    /// For each newcomer, whether it takes the place of the kept slot it matched: a pair whose
+    /// newcomer draws in more of the views than the kept slot (which its view placed at a depth
+    /// from where the other views cannot see it: on a street, the far row's cars seen from the
+    /// near row's view); otherwise the kept slot stays.
+    pub takes_over: Vec<bool>,
+}
+
 /// For each of `newcomers`' slots, the slot of `kept` that draws the same object in `views`,
-/// if any. First pairs by decreasing intersection over union of their label maps (summed over
-/// the views), each slot in at most one pair, none under [`MATCH_IOU`]. Then fragments: a
-/// newcomer still unmatched whose pixels lie mostly ([`FRAGMENT_SHARE`]) inside one kept
-/// slot's, in every view where it draws at least [`FRAGMENT_PIXELS`], is a piece of that
-/// slot's object (a view that split an object in two) and matches it too.
+/// if any. First pairs by decreasing intersection over union of their label maps, summed over
+/// the views where both draw (a slot that draws nothing in a view says nothing there: its
+/// frame may sit behind that camera), each slot in at most one pair,
+/// none under [`MATCH_IOU`]. Then fragments: a newcomer still unmatched whose pixels lie mostly
+/// ([`FRAGMENT_SHARE`]) inside one kept slot's, in every view where it draws at least
+/// [`FRAGMENT_PIXELS`], is a piece of that slot's object (a view that split an object in two)
+/// and matches it too.
 pub fn match_slots(
     model: &Colf,
     kept: (&[Slot], &[f32]),
     newcomers: (&[Slot], &[f32]),
     views: &[InputView],
-) -> Result<Vec<Option<usize>>> {
+) -> Result<Matching> {
     let mut label_maps = Vec::with_capacity(views.len());
     for view in views {
         label_maps.push((
@@ -209,7 +228,7 @@ struct ViewOverlap {
 
 /// [`match_slots`] on the label maps (0 the background, k + 1 slot k) of `a` kept slots and
 /// `b` newcomers, one pair of maps per view.
-pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> Vec<Option<usize>> {
+pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> Matching {
     // Per view: the kept slots' and the newcomers' areas, and their intersections.
     let mut per_view = Vec::with_capacity(views.len());
     for (la, lb) in views {
@@ -232,26 +251,20 @@ pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> V
             intersection,
         });
     }
-    // Summed over the views, for the intersection over union.
-    let mut total = ViewOverlap {
-        kept_area: vec![0; a],
-        new_area: vec![0; b],
-        intersection: vec![0; a * b],
-    };
-    for v in &per_view {
-        for (sum, part) in [
-            (&mut total.kept_area, &v.kept_area),
-            (&mut total.new_area, &v.new_area),
-            (&mut total.intersection, &v.intersection),
-        ] {
-            sum.iter_mut().zip(part).for_each(|(s, p)| *s += p);
-        }
-    }
+    let draws = |area: usize| area > 0;
     let mut pairs: Vec<(f64, usize, usize)> = Vec::new();
     for i in 0..a {
         for j in 0..b {
-            let both = total.intersection[i * b + j];
-            let union = total.kept_area[i] + total.new_area[j] - both;
+            // Intersection and union over the views where both draw.
+            let (mut both, mut union) = (0, 0);
+            for v in per_view
+                .iter()
+                .filter(|v| draws(v.kept_area[i]) && draws(v.new_area[j]))
+            {
+                let common = v.intersection[i * b + j];
+                both += common;
+                union += v.kept_area[i] + v.new_area[j] - common;
+            }
             if both > 0 {
                 let iou = both as f64 / union as f64;
                 if iou >= MATCH_IOU {
@@ -264,10 +277,15 @@ pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> V
     pairs.sort_by(|p, q| q.0.total_cmp(&p.0).then((p.1, p.2).cmp(&(q.1, q.2))));
     let mut taken = vec![false; a];
     let mut matched = vec![None; b];
+    let mut takes_over = vec![false; b];
+    let views_drawn_in =
+        |area: &dyn Fn(&ViewOverlap) -> usize| per_view.iter().filter(|v| draws(area(v))).count();
     for (_, i, j) in pairs {
         if !taken[i] && matched[j].is_none() {
             taken[i] = true;
             matched[j] = Some(i);
+            takes_over[j] =
+                views_drawn_in(&|v| v.new_area[j]) > views_drawn_in(&|v| v.kept_area[i]);
         }
     }
     for (j, m) in matched.iter_mut().enumerate() {
@@ -288,7 +306,10 @@ pub fn match_label_maps(a: usize, b: usize, views: &[(Vec<u32>, Vec<u32>)]) -> V
             .max_by(|p, q| p.0.total_cmp(&q.0).then(q.1.cmp(&p.1)))
             .map(|(_, i)| i);
     }
-    matched
+    Matching {
+        of: matched,
+        takes_over,
+    }
 }
 
 /// Which field draws each of `view`'s compared pixels when `slots` and `background` render it:
@@ -383,7 +404,8 @@ mod tests {
         let cam = camera(16, 0.0);
         let view = InputView::new(&cam, &img);
         let (slots, background) = super::super::encode_once(&model, &view, &options(), 3).unwrap();
-        // A set against itself: every slot that draws a pixel is its own match, and only its.
+        // A set against itself: every slot that draws a pixel is its own match, and only its,
+        // and stays.
         let labels = labels(&model, &slots, &background, &view).unwrap();
         let matched = match_slots(
             &model,
@@ -392,14 +414,15 @@ mod tests {
             std::slice::from_ref(&view),
         )
         .unwrap();
-        for (k, m) in matched.iter().enumerate() {
+        for (k, m) in matched.of.iter().enumerate() {
             let draws = labels.contains(&(k as u32 + 1));
             assert_eq!(*m, draws.then_some(k), "slot {k}");
         }
-        assert!(matched.iter().any(|m| m.is_some()));
+        assert!(matched.of.iter().any(|m| m.is_some()));
+        assert!(matched.takes_over.iter().all(|t| !t));
         // Against no slots: nothing matches.
         let none = match_slots(&model, (&[], &background), (&slots, &background), &[view]).unwrap();
-        assert!(none.iter().all(|m| m.is_none()));
+        assert!(none.of.iter().all(|m| m.is_none()));
     }
 
     /// A label map of 16 pixels: pixels `ranges[k].0..ranges[k].1` drawn by slot k, the rest
@@ -420,26 +443,52 @@ mod tests {
         // of that object, all 4 of its pixels inside slot 0: a fragment, it matches slot 0 too.
         let split = label_map(&[(4, 10), (0, 4)]);
         assert_eq!(
-            match_label_maps(2, 2, &[(kept.clone(), split.clone())]),
+            match_label_maps(2, 2, &[(kept.clone(), split.clone())]).of,
             vec![Some(0), Some(0)]
         );
         // A second view where newcomer 1 lies outside slot 0: not a fragment (every view where
         // it draws must agree), and too little overlap with anything to pair.
         let elsewhere = label_map(&[(4, 10), (10, 14)]);
         assert_eq!(
-            match_label_maps(2, 2, &[(kept.clone(), split), (kept.clone(), elsewhere)]),
+            match_label_maps(2, 2, &[(kept.clone(), split), (kept.clone(), elsewhere)]).of,
             vec![Some(0), None]
         );
         // A newcomer where no kept slot draws is a new object; one drawing too few pixels to
         // judge is not a fragment.
         assert_eq!(
-            match_label_maps(2, 2, &[(kept.clone(), label_map(&[(10, 12), (12, 13)]))]),
+            match_label_maps(2, 2, &[(kept.clone(), label_map(&[(10, 12), (12, 13)]))]).of,
             vec![None, Some(1)]
         );
         assert_eq!(
-            match_label_maps(2, 1, &[(kept, label_map(&[(10, 12)]))]),
+            match_label_maps(2, 1, &[(kept, label_map(&[(10, 12)]))]).of,
             vec![None]
         );
+    }
+
+    /// A slot that draws nothing in a view (its frame behind that camera) is judged on the
+    /// views where both draw, and the slot that draws in more views takes the pair's place.
+    #[test]
+    fn a_slot_invisible_in_a_view_is_judged_where_both_draw() {
+        // View a: kept slot 0 on pixels 0–5, newcomer 0 on 3–8 (IoU 3/9). View b: the kept
+        // slot draws nothing, the newcomer 8 pixels; summed over both views the IoU would be
+        // 3/17, under MATCH_IOU.
+        let view_a = (label_map(&[(0, 6)]), label_map(&[(3, 9)]));
+        let view_b = (label_map(&[]), label_map(&[(2, 10)]));
+        let matching = match_label_maps(1, 1, &[view_a.clone(), view_b.clone()]);
+        assert_eq!(matching.of, vec![Some(0)]);
+        assert_eq!(matching.takes_over, vec![true]);
+        // Both drawing in both views: the kept slot stays.
+        let view_b_both = (label_map(&[(2, 10)]), label_map(&[(2, 10)]));
+        let matching = match_label_maps(1, 1, &[view_a.clone(), view_b_both]);
+        assert_eq!(
+            (matching.of, matching.takes_over),
+            (vec![Some(0)], vec![false])
+        );
+        // Disagreeing where both draw still keeps them apart: in view b the kept slot draws
+        // pixels 10–16 and the newcomer 2–10 (IoU 3/23 over both views).
+        let view_b_apart = (label_map(&[(10, 16)]), label_map(&[(2, 10)]));
+        let matching = match_label_maps(1, 1, &[view_a, view_b_apart]);
+        assert_eq!(matching.of, vec![None]);
     }
 
     #[test]
