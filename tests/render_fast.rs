@@ -241,6 +241,86 @@ fn light_field_with_a_shadow_reach_matches_candle() {
     }
 }
 
+/// A camera among the slots: with `cull_behind`, the slots more than that behind it along a ray
+/// get no weight there, in the candle path and the fast renderer alike, and the rest of the
+/// render is what the same scene without them gives.
+#[test]
+fn slots_behind_the_camera_are_culled_in_both_renderers() {
+    let cfg = Config::small()
+        .with_overrides(&[
+            "background_from_nearest_slot=true".into(),
+            "cull_behind=1.5".into(),
+        ])
+        .unwrap();
+    let model = Colf::init(&cfg, 3).unwrap();
+    let (mut frames, _, _) = scene(4, 1);
+    // The camera stands at the scene's centre looking along +x; slot 4 sits 6 units behind it.
+    frames.push(DMat4::from_translation(DVec3::new(-6.0, 0.0, 0.3)));
+    let eye = DVec3::new(0.0, 0.0, 1.0);
+    let jitter = noise(2 * 300, 5);
+    let dirs: Vec<DVec3> = (0..300)
+        .map(|i| {
+            DVec3::new(
+                1.0,
+                0.6 * jitter[2 * i] as f64,
+                0.4 * jitter[2 * i + 1] as f64 - 0.1,
+            )
+        })
+        .collect();
+    let origins = vec![eye; dirs.len()];
+    let latents: Vec<Vec<f32>> = (0..5).map(|i| noise(cfg.slot_dim, 10 + i)).collect();
+    let bg = noise(cfg.slot_dim, 7);
+    let prepared = model.prepare(&latents, &bg).unwrap();
+    let slow = model
+        .render_rays(&prepared, &frames, &origins, &dirs)
+        .unwrap();
+    let fast = FastRenderer::new(&model, &prepared, &frames)
+        .unwrap()
+        .render(&origins, &dirs, None, None)
+        .unwrap();
+    assert!(max_diff(&slow.rgb, &fast.rgb) < 1e-4 && max_diff(&slow.weights, &fast.weights) < 1e-4);
+    let fields = 1 + frames.len();
+    let behind: f32 = fast
+        .weights
+        .chunks(fields)
+        .map(|w| w[5])
+        .fold(0.0, f32::max);
+    assert!(
+        behind < 1e-12,
+        "the slot behind the camera still weighs {behind}"
+    );
+    // The same as the scene without that slot.
+    let without = model.prepare(&latents[..4], &bg).unwrap();
+    let rest = FastRenderer::new(&model, &without, &frames[..4])
+        .unwrap()
+        .render(&origins, &dirs, None, None)
+        .unwrap();
+    assert!(
+        max_diff(&rest.rgb, &fast.rgb) < 1e-5,
+        "{}",
+        max_diff(&rest.rgb, &fast.rgb)
+    );
+    // Without the option it takes the rays it lies on.
+    let plain = Colf::init(
+        &Config::small()
+            .with_overrides(&["background_from_nearest_slot=true".into()])
+            .unwrap(),
+        3,
+    )
+    .unwrap();
+    let prepared = plain.prepare(&latents, &bg).unwrap();
+    let drawn = FastRenderer::new(&plain, &prepared, &frames)
+        .unwrap()
+        .render(&origins, &dirs, None, None)
+        .unwrap();
+    let weight: f32 = drawn
+        .weights
+        .chunks(fields)
+        .map(|w| w[5])
+        .fold(0.0, f32::max);
+    assert!(weight > 0.1, "{weight}");
+}
+
 #[test]
 fn volumetric_matches_candle() {
     compare(&Config::volumetric(), 3, 40, 2e-3);

@@ -116,6 +116,15 @@ pub struct Config {
     /// (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub frame_ground_contact: bool,
+    /// A foreground slot does not draw on a ray that starts more than this (world units) past
+    /// its frame origin (the origin lies that far behind the camera, along the ray), and the
+    /// background's ordering is not measured from it: an object within this of its frame
+    /// origin cannot be seen there. Without it, a slot behind a camera that stands among the
+    /// objects (a drive down a street, a view from another row) gets the most negative
+    /// ordering shift and is drawn in front of everything (`rays.rs`). 0 = off. Absent in
+    /// older files (= 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub cull_behind: f64,
     /// Foreground slots cast shadows on the background: each slot's light field also gives a
     /// shadow density σ ≥ 0 per ray (`heads.shadow`), and the background's colour on a ray is
     /// multiplied by exp(−Σ σ) over the foreground slots. The shadow belongs to the object's
@@ -290,6 +299,7 @@ impl Config {
             background_from_nearest_slot: false,
             frame_ground_height: 0.0,
             frame_ground_contact: false,
+            cull_behind: 0.0,
             shadow_head: false,
             shadow_light: None,
             shadow_reach: 0.0,
@@ -440,6 +450,9 @@ impl Config {
         }
         if !(self.frame_ground_height.is_finite() && self.frame_ground_height >= 0.0) {
             bail!("model config: `frame_ground_height` must be a non-negative number");
+        }
+        if !(self.cull_behind.is_finite() && self.cull_behind >= 0.0) {
+            bail!("model config: `cull_behind` must be a non-negative number");
         }
         if self.frame_ground_contact && self.frame_ground_height > 0.0 {
             bail!("model config: `frame_ground_contact` and `frame_ground_height` both place frames on the ground: set one");

@@ -20,7 +20,12 @@
 //! - with `fg_locality` = r > 0, a foreground slot's shift also grows by ρ²/r, ρ = the ray's
 //!   distance from the slot's frame origin: a locality bound (uORF bounded its slots with a
 //!   box) that pushes a slot behind the others on rays far from where it lives, so no slot can
-//!   claim the whole image. It moves with the frame, so moved and merged slots keep it.
+//!   claim the whole image. It moves with the frame, so moved and merged slots keep it;
+//! - with `cull_behind` = c > 0, a foreground slot whose frame origin lies more than c behind
+//!   the ray's origin along it (shift < −c) is pushed [`BEHIND_PUSH`] further back, behind
+//!   everything (its compositor weight vanishes), and the background's ordering is not measured
+//!   from it. Without that, a slot behind a camera standing among the objects has the most
+//!   negative shift and comes first.
 
 use super::config::Config;
 use anyhow::{bail, Context, Result};
@@ -474,6 +479,17 @@ fn encode_fields(
         });
 }
 
+/// How far back (world units) `cull_behind` pushes a slot behind the ray's origin: far enough
+/// that the compositor's monotone gap prior gives it no weight, finite so every score stays
+/// finite.
+pub const BEHIND_PUSH: f64 = 1e6;
+
+/// Whether a foreground slot whose frame origin lies `along` the ray from its origin is culled
+/// (`Config::cull_behind`).
+fn behind_the_ray(cfg: &Config, along: f64) -> bool {
+    cfg.cull_behind > 0.0 && along < -cfg.cull_behind
+}
+
 /// The ordering shifts of the ray (o, d) for each field (`frames`' origins): how far along the
 /// ray its frame origin lies (plus ρ²/`Config::fg_locality` for foreground slots with a locality
 /// bound, ρ the ray's distance from the origin; the background's from the nearest foreground
@@ -492,11 +508,19 @@ fn ordering_shifts(
         .enumerate()
         .map(|(si, (_, t))| {
             let along = (*t - o).dot(d);
-            if si == 0 || cfg.fg_locality == 0.0 {
+            if si == 0 {
                 return along;
             }
+            let culled = if behind_the_ray(cfg, along) {
+                BEHIND_PUSH
+            } else {
+                0.0
+            };
+            if cfg.fg_locality == 0.0 {
+                return along + culled;
+            }
             let rho_sq = ((*t - o) - along * d).length_squared();
-            along + rho_sq / cfg.fg_locality
+            along + rho_sq / cfg.fg_locality + culled
         })
         .collect();
     if let Some(nearest) = background_anchor(cfg, frames, o, d) {
@@ -524,6 +548,9 @@ fn background_anchor(
     let mut nearest: Option<(usize, f64)> = None;
     for (field, (_, t)) in frames.iter().enumerate().skip(1) {
         let along = (*t - o).dot(d_hat);
+        if behind_the_ray(cfg, along) {
+            continue;
+        }
         if nearest.is_none_or(|(_, best)| along < best) {
             nearest = Some((field, along));
         }
@@ -671,6 +698,48 @@ mod tests {
             background_anchor(&cfg, &frames[..1], o, d.normalize()),
             None
         );
+    }
+
+    /// A camera standing among the objects: a slot behind it would come first (the most
+    /// negative shift) and anchor the background; culled, it goes far back and the nearest slot
+    /// ahead anchors the background.
+    #[test]
+    fn slots_behind_the_camera_are_culled() {
+        let car = |x: f64| (DMat4::IDENTITY, DVec3::new(x, 0.0, 0.5));
+        let frames = [
+            (DMat4::IDENTITY, DVec3::ZERO),
+            car(80.0),
+            car(100.0),
+            car(89.0),
+        ];
+        let (o, d) = (DVec3::new(90.0, 0.0, 1.0), DVec3::new(1.0, 0.0, -0.01));
+        let mut cfg = Config::small();
+        cfg.background_from_nearest_slot = true;
+        let mut row = [0f32; 4];
+        ordering_shifts(&cfg, &frames, o, d, &mut row);
+        // The car 10 units behind comes first and anchors the background.
+        assert_eq!(background_anchor(&cfg, &frames, o, d.normalize()), Some(1));
+        assert!(row[1] == 0.0 && row[2] > 19.0, "{row:?}");
+        cfg.cull_behind = 2.0;
+        let base = ordering_shifts(&cfg, &frames, o, d, &mut row);
+        // Culled: pushed back; the car 1 unit behind (within the margin) is kept and now
+        // anchors the background; the one ahead keeps its place.
+        assert_eq!(background_anchor(&cfg, &frames, o, d.normalize()), Some(3));
+        assert!(row[1] as f64 > 0.9 * BEHIND_PUSH, "{row:?}");
+        let along = |x: f64| (DVec3::new(x, 0.0, 0.5) - o).dot(d.normalize());
+        assert!((base - along(89.0)).abs() < 1e-9, "{base}");
+        assert!(
+            (row[2] as f64 - (along(100.0) - along(89.0))).abs() < 1e-4,
+            "{row:?}"
+        );
+        // A camera outside the scene (every frame ahead) is unchanged by the option.
+        let far = DVec3::new(-50.0, 0.0, 5.0);
+        let (mut plain, mut culled) = ([0f32; 4], [0f32; 4]);
+        cfg.cull_behind = 0.0;
+        let b0 = ordering_shifts(&cfg, &frames, far, d, &mut plain);
+        cfg.cull_behind = 2.0;
+        let b1 = ordering_shifts(&cfg, &frames, far, d, &mut culled);
+        assert_eq!((b0, plain), (b1, culled));
     }
 
     #[test]
