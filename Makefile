@@ -159,16 +159,18 @@ eval-sheet: build
 
 # The city demo (issue 39): CITY_STREETS held-out city-block streets at 128², each encoded from
 # its two context views into one scene (one background, one slot a car: colf-encode matches the
-# views' slots); street 0 edited by position (examples/demo-city-edits.json: the red car of the
-# front row removed, the yellow one moved to the other lane and turned) and a drive down the
+# views' slots); street 0 edited by position (examples/demo-city-edits.json, cars named by the
+# line of sight from view 0's camera: the red car of the front row removed, the yellow one turned
+# and moved to the other lane) and a drive down the
 # street rendered before and after; then every street's cars merged into one scene and lined up
 # in the street's four lanes (examples/city_traffic.rs writes the colf-edit script), rendered
 # along the same street with its time and peak memory (GNU time) in $(CITY_DEMO)/traffic-time.txt.
 # The sheet: row 1 street 0's two context views; rows 2–3 the drive and its masks (one colour a
 # slot); row 4 the edited drive; rows 5–6 the merged traffic and its masks. CITY_MODEL: the
-# city model (make model-city).
+# city model (make model-city). 20 streets: the default encoding keeps about 3.6 slots a street
+# (docs/training-log.md, "The city model"), so the merged scene holds 60 or more.
 CITY_DEMO := out/demo-city
-CITY_STREETS ?= 16
+CITY_STREETS ?= 20
 CITY_MODEL ?= $(CITY_RUN)/c2.safetensors
 CITY_DRIVE := --from 40,0,1.3 --to 108,0,1.3 --look-at 70,0,0.5 --look-at-end 140,0,0.5
 demo-city: build
