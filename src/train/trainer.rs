@@ -352,6 +352,14 @@ impl Trainer {
                 opts.data.display()
             );
         }
+        if colf.config().cull_behind > 0.0 && opts.mask_weight > 0.0 {
+            // A proposal matched to a slot culled on a ray would ask for the log of a weight of
+            // e^(−10⁵) (docs/training-log.md, the city model's c1k).
+            bail!(
+                "the model culls slots behind the camera (cull_behind = {}), which the                  compositor's mask loss cannot train with yet: use --mask-weight 0, or                  --set cull_behind=0 and add the cull after training (colf-train configure)",
+                colf.config().cull_behind
+            );
+        }
         let mut colf = colf.into_trainable()?;
         colf.set_reference_decoder(opts.reference_decoder);
         let vars = colf.named_vars();
