@@ -695,21 +695,6 @@ fn training_without_masks_runs_and_the_model_records_how_it_was_trained() {
         &["--freeze", "encoder.", "--lr-scale", "encoder.=2"],
         "`encoder.` (to scale its learning rate)",
     );
-    // A model that culls slots behind the camera cannot train the compositor's mask loss yet.
-    refused(
-        &unlabelled,
-        dir.path(),
-        &[
-            "--init",
-            first.to_str().unwrap(),
-            "--set",
-            "cull_behind=2",
-            "--proposals",
-            "--mask-weight",
-            "0.1",
-        ],
-        "cull_behind = 2",
-    );
     for bad in [
         "encoder.=0",
         "encoder.=-1",

@@ -352,14 +352,6 @@ impl Trainer {
                 opts.data.display()
             );
         }
-        if colf.config().cull_behind > 0.0 && opts.mask_weight > 0.0 {
-            // A proposal matched to a slot culled on a ray would ask for the log of a weight of
-            // e^(−10⁵) (docs/training-log.md, the city model's c1k).
-            bail!(
-                "the model culls slots behind the camera (cull_behind = {}), which the                  compositor's mask loss cannot train with yet: use --mask-weight 0, or                  --set cull_behind=0 and add the cull after training (colf-train configure)",
-                colf.config().cull_behind
-            );
-        }
         let mut colf = colf.into_trainable()?;
         colf.set_reference_decoder(opts.reference_decoder);
         let vars = colf.named_vars();
@@ -558,7 +550,11 @@ impl Trainer {
         }
         let s = 1 + k;
         if opts.mask_weight > 0.0 && samples.iter().all(|s| s.has_masks) {
-            let (index, valid) = matched_targets(samples, weights_host, s);
+            let (index, mut valid) = matched_targets(samples, weights_host, s);
+            if self.colf.config().cull_behind > 0.0 {
+                let log_weights = decoded.log_weights.flatten_all()?.to_vec1::<f32>()?;
+                leave_out_culled(&index, &mut valid, &log_weights, s);
+            }
             let ray_weights = balanced_ray_weights(&index, &valid);
             let ce = weighted_cross_entropy(&decoded.log_weights, index, ray_weights)?;
             log.mask_loss = Some(ce.to_scalar::<f32>()? as f64);
@@ -884,6 +880,21 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     (index, valid)
 }
 
+/// Below this log weight a (ray, slot) pair was culled (`Config::cull_behind` pushes the slot
+/// 10⁶ units back: log weights near −10⁵); no score gap of a drawn slot comes near it.
+const CULLED_LOG_WEIGHT: f32 = -1e4;
+
+/// Leaves out of the compositor's mask loss the rays whose matched slot (`index`, per ray) is
+/// culled there (`log_weights` [rays, s]): the slot lies behind that ray's camera and cannot be
+/// asked to draw it; its log weight would make the loss ~10⁵ (docs/training-log.md, c1k).
+fn leave_out_culled(index: &[u32], valid: &mut [f32], log_weights: &[f32], s: usize) {
+    for (ray, (target, v)) in index.iter().zip(valid.iter_mut()).enumerate() {
+        if log_weights[ray * s + *target as usize] < CULLED_LOG_WEIGHT {
+            *v = 0.0;
+        }
+    }
+}
+
 /// [`match_objects`] on each run of `block` consecutive elements separately (one view's rays,
 /// when ids are local to each view), ignoring the elements `near` marks.
 fn match_in_blocks(
@@ -1177,6 +1188,25 @@ mod tests {
         let (index, valid) = match_in_blocks(&ids, &near, &weights, 3, 2);
         assert_eq!((index[0], valid[0]), (0, 0.0));
         assert_eq!((index[1], valid[1]), (1, 1.0));
+    }
+
+    #[test]
+    fn culled_targets_leave_the_mask_loss() {
+        // 3 rays, 3 fields: ray 1's target (slot 2) is culled there, ray 2's culled slot is
+        // not its target, ray 0 is already left out.
+        let index = [1u32, 2, 0];
+        let mut valid = [0.0f32, 1.0, 1.0];
+        let log_weights = [
+            -0.1, -2.0, -1e5, //
+            -0.5, -1.0, -1e5, //
+            -0.2, -1e5, -3.0,
+        ];
+        leave_out_culled(&index, &mut valid, &log_weights, 3);
+        assert_eq!(valid, [0.0, 0.0, 1.0]);
+        // A drawn slot far behind the front one keeps its target.
+        let mut valid = [1.0f32];
+        leave_out_culled(&[1], &mut valid, &[-0.01, -90.0], 2);
+        assert_eq!(valid, [1.0]);
     }
 
     #[test]
