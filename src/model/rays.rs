@@ -508,19 +508,14 @@ fn ordering_shifts(
         .enumerate()
         .map(|(si, (_, t))| {
             let along = (*t - o).dot(d);
-            if si == 0 {
-                return along;
+            let mut shift = along;
+            if si > 0 && cfg.fg_locality > 0.0 {
+                shift += ((*t - o) - along * d).length_squared() / cfg.fg_locality;
             }
-            let culled = if behind_the_ray(cfg, along) {
-                BEHIND_PUSH
-            } else {
-                0.0
-            };
-            if cfg.fg_locality == 0.0 {
-                return along + culled;
+            if si > 0 && behind_the_ray(cfg, along) {
+                shift += BEHIND_PUSH;
             }
-            let rho_sq = ((*t - o) - along * d).length_squared();
-            along + rho_sq / cfg.fg_locality + culled
+            shift
         })
         .collect();
     if let Some(nearest) = background_anchor(cfg, frames, o, d) {
