@@ -33,8 +33,8 @@ the slots left still render IMAGE with a mean squared error at most --redundant 
 of them all (the bound is on the total). Given more slots than objects, slot attention \
 sometimes gives one object two slots that draw it alike; keeping one means an edit that moves \
 or deletes it moves or deletes all of it. --redundant 0 keeps every slot.\n\n\
-Unset, --slots, --tries and --refine take the model's default encoding (its config's \
-`inference`, written by colf-train configure; a model without one is encoded in one pass with \
+Unset, --slots, --tries, --refine, --refine-lr and --refine-frame-lr take the model's default \
+encoding (its config's `inference`, written by colf-train configure; a model without one is encoded in one pass with \
 its training slot count). The bundled models' is 12 slots, 4 tries and 50 refinement steps: the \
 most accurate encoding measured (docs/refinement.md; about 2.1 s of CPU an image, docs/speed.md). \
 --fast is the one-pass encoding (the model's training slot count, about 0.03 s an image), for \

@@ -231,9 +231,9 @@ pub struct FitArgs {
     #[arg(long, value_name = "N")]
     pub refine: Option<usize>,
 
-    /// Learning rate of the refinement.
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().lr, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate)]
-    pub refine_lr: f64,
+    /// Learning rate of the refinement on the slot latents (default: the model's, else 0.01).
+    #[arg(long, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate)]
+    pub refine_lr: Option<f64>,
 
     /// Pixels of the input image rendered per refinement step (all when the image has fewer;
     /// 512 makes the default encoding 1.7x faster for -0.05 dB on novel views, docs/speed.md).
@@ -259,9 +259,9 @@ pub struct FitArgs {
     pub redundant: Option<f64>,
 
     /// Also move the slots' frame origins during refinement, with this learning rate (world
-    /// units; 0: frames fixed).
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().frame_lr, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate_or_zero)]
-    pub refine_frame_lr: f64,
+    /// units; 0: frames fixed; default: the model's, else 0.003).
+    #[arg(long, value_name = "LR", allow_negative_numbers = true, value_parser = parse::learning_rate_or_zero)]
+    pub refine_frame_lr: Option<f64>,
 
     /// During refinement, evaluate a slot only on the pixels near where its compositor weight
     /// or shadow exceeds EPS (checked every few steps on a coarse grid of the image; 0: every
@@ -296,6 +296,8 @@ impl FitArgs {
             slots: slots.unwrap_or(base.slots),
             tries: self.tries.unwrap_or(base.tries),
             refine: self.refine.unwrap_or(base.refine),
+            refine_lr: self.refine_lr.or(base.refine_lr),
+            refine_frame_lr: self.refine_frame_lr.or(base.refine_frame_lr),
         }
     }
 
@@ -335,7 +337,6 @@ impl FitArgs {
         })
     }
 
-    /// The refinement options for `steps` steps; the pixel subsets are drawn from `seed`.
     /// The encoding these flags ask for with `model_config`, `slots` (the stage's --slots) and
     /// slot-noise `seed` (no camera or source: the stage sets them per image).
     pub fn encode_options(
@@ -361,20 +362,27 @@ impl FitArgs {
             num_slots: encoding.slots,
             seed,
             tries: encoding.tries,
-            refine: self.options(encoding.refine, seed),
+            refine: self.options(&encoding, seed),
             redundant_mse: self.redundant_mse(),
             agreed_slots: self.agreed_slots(),
             ..crate::encode::EncodeOptions::one_pass(encoding.slots)
         }
     }
 
-    pub fn options(&self, steps: usize, seed: u64) -> crate::encode::refine::RefineOptions {
+    /// The refinement options of `encoding` (its steps and learning rates, the other settings
+    /// from these flags); the pixel subsets are drawn from `seed`.
+    pub fn options(
+        &self,
+        encoding: &crate::model::config::InferenceConfig,
+        seed: u64,
+    ) -> crate::encode::refine::RefineOptions {
+        let defaults = crate::encode::refine::RefineOptions::default();
         crate::encode::refine::RefineOptions {
-            steps,
-            lr: self.refine_lr,
+            steps: encoding.refine,
+            lr: encoding.refine_lr.unwrap_or(defaults.lr),
             rays: self.refine_rays,
             anchor_weight: self.refine_anchor,
-            frame_lr: self.refine_frame_lr,
+            frame_lr: encoding.refine_frame_lr.unwrap_or(defaults.frame_lr),
             support: self.refine_support,
             shadow_reach: self.refine_shadow_reach,
             seed,
@@ -402,6 +410,8 @@ mod tests {
                 slots: 12,
                 tries: 4,
                 refine: 50,
+                refine_lr: None,
+                refine_frame_lr: None,
             }),
             ..Config::small()
         };
@@ -425,6 +435,8 @@ mod tests {
             slots: 12,
             tries: 4,
             refine: 50,
+            refine_lr: None,
+            refine_frame_lr: None,
         };
         let tuned = Config {
             inference: Some(measured),
@@ -442,7 +454,9 @@ mod tests {
             InferenceConfig {
                 slots: 8,
                 tries: 4,
-                refine: 0
+                refine: 0,
+                refine_lr: None,
+                refine_frame_lr: None,
             }
         );
         assert_eq!(
@@ -450,9 +464,32 @@ mod tests {
             InferenceConfig {
                 slots: 7,
                 tries: 3,
-                refine: 0
+                refine: 0,
+                refine_lr: None,
+                refine_frame_lr: None,
             }
         );
+        // A model's measured learning rates reach the refinement unless a flag says otherwise;
+        // a model without them refines at the flags' defaults.
+        let rated = Config {
+            inference: Some(InferenceConfig {
+                refine: 25,
+                refine_lr: Some(0.02),
+                refine_frame_lr: Some(0.015),
+                ..measured
+            }),
+            ..Config::small()
+        };
+        let rates = |cfg: &Config, flags: &[&str]| {
+            let args =
+                EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
+            let opts = args.fit.options(&args.fit.encoding(cfg, args.slots), 0);
+            (opts.steps, opts.lr, opts.frame_lr)
+        };
+        assert_eq!(rates(&rated, &[]), (25, 0.02, 0.015));
+        assert_eq!(rates(&rated, &["--refine-lr", "0.05"]), (25, 0.05, 0.015));
+        assert_eq!(rates(&rated, &["--refine-frame-lr", "0"]), (25, 0.02, 0.0));
+        assert_eq!(rates(&tuned, &[]), (50, 0.01, 0.003));
         // --fast with --tries or --refine is a usage error.
         for flags in [["--fast", "--tries", "2"], ["--fast", "--refine", "2"]] {
             let err = EncodeArgs::try_parse_from([&["colf-encode", "x.png"], &flags[..]].concat())

@@ -258,9 +258,8 @@ fn check(model: &Colf, views: &[&InputView], opts: &RefineOptions) -> Result<()>
     Ok(())
 }
 
-/// The largest learning rate refinement accepts: latents live in a unit-scale space, so a step
-/// far above 1 can only overflow.
-pub const MAX_LEARNING_RATE: f64 = 100.0;
+/// The largest learning rate refinement accepts (the same bound as a model config's).
+pub const MAX_LEARNING_RATE: f64 = crate::model::config::MAX_REFINE_LR;
 
 /// The rays and colours of every pixel of the views, in order.
 struct Pixels {

@@ -179,6 +179,14 @@ pub struct InferenceConfig {
     pub tries: usize,
     /// Refinement steps on the input image (0: the encoder's latents).
     pub refine: usize,
+    /// Refinement's learning rate on the latents (absent: colf-encode's `--refine-lr` default).
+    /// Not written when absent, so older files and their identities are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_lr: Option<f64>,
+    /// Refinement's learning rate on the slot frames' origins, world units (absent:
+    /// `--refine-frame-lr`'s default; 0: frames fixed).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_frame_lr: Option<f64>,
 }
 
 /// Largest slot count an encoding accepts: slot attention runs with any K, but beyond this a
@@ -188,6 +196,9 @@ pub const MAX_ENCODE_SLOTS: usize = 1024;
 pub const MAX_ENCODE_TRIES: usize = 100;
 /// Largest `inference.refine` a config may ask for (a typo would cost every encode).
 const MAX_INFERENCE_REFINE: usize = 100_000;
+/// Largest refinement learning rate a config or colf-encode's flags may ask for: latents live in
+/// a unit-scale space, so a step far above 1 can only overflow.
+pub const MAX_REFINE_LR: f64 = 100.0;
 
 impl InferenceConfig {
     /// One encoder pass with `slots` slots.
@@ -196,6 +207,8 @@ impl InferenceConfig {
             slots,
             tries: 1,
             refine: 0,
+            refine_lr: None,
+            refine_frame_lr: None,
         }
     }
 }
@@ -497,6 +510,14 @@ impl Config {
             {
                 bail!("model config: `inference` needs 1 ≤ slots ≤ {MAX_ENCODE_SLOTS}, 1 ≤ tries ≤ {MAX_ENCODE_TRIES} and refine ≤ {MAX_INFERENCE_REFINE}");
             }
+            let rate_ok = |lr: Option<f64>, zero_ok: bool| {
+                lr.is_none_or(|lr| {
+                    lr.is_finite() && (lr > 0.0 || (zero_ok && lr == 0.0)) && lr <= MAX_REFINE_LR
+                })
+            };
+            if !rate_ok(inference.refine_lr, false) || !rate_ok(inference.refine_frame_lr, true) {
+                bail!("model config: `inference` needs refine_lr in (0, {MAX_REFINE_LR}] and refine_frame_lr in [0, {MAX_REFINE_LR}]");
+            }
             if self.volumetric.is_some() && inference.refine > 0 {
                 bail!("model config: `inference.refine` applies to light-field models, not the volumetric baseline");
             }
@@ -569,8 +590,11 @@ mod tests {
             slots: 12,
             tries: 4,
             refine: 50,
+            refine_lr: None,
+            refine_frame_lr: None,
         };
         assert_eq!(cfg.default_inference(), measured);
+        assert!(!cfg.to_json().contains("refine_lr"), "identities unchanged");
         assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
         // `null` removes them again.
         assert_eq!(
@@ -584,9 +608,26 @@ mod tests {
             r#"inference={"slots":7,"tries":1,"refine":1000000}"#,
             r#"inference={"slots":7,"tries":1}"#,
             r#"inference={"slots":7,"tries":1,"refine":0,"lr":1}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_lr":0}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_lr":-0.01}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_lr":1000}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_frame_lr":-1}"#,
         ] {
             assert!(small.with_overrides(&[bad.into()]).is_err(), "{bad}");
         }
+        // Measured learning rates ride along, and a fixed frame (0) is allowed.
+        let rates = small
+            .with_overrides(&[
+                r#"inference={"slots":12,"tries":4,"refine":25,"refine_lr":0.02,"refine_frame_lr":0}"#
+                    .into(),
+            ])
+            .unwrap();
+        let inference = rates.default_inference();
+        assert_eq!(
+            (inference.refine_lr, inference.refine_frame_lr),
+            (Some(0.02), Some(0.0))
+        );
+        assert_eq!(Config::from_json(&rates.to_json()).unwrap(), rates);
         // The volumetric baseline cannot be refined.
         let volumetric = Config::volumetric();
         assert!(volumetric
