@@ -484,10 +484,22 @@ fn measure_decoder(which: &str, reference: bool, reach: f64, reps: usize) -> Res
     Ok(row)
 }
 
+/// Flags of the half-length refinement measured against the default encoding
+/// (docs/refinement.md, "The learning rates again"): the same scores on held-out scenes.
+const HALF_REFINEMENT: [&str; 6] = [
+    "--refine",
+    "25",
+    "--refine-lr",
+    "0.02",
+    "--refine-frame-lr",
+    "0.015",
+];
+
 /// The bundled default model's default encoding (its measured slots, tries and refinement, as
-/// `colf-encode` with no flags) of view 0 of a colf-synth scene of `size`², with the refinement
-/// through the fused decoder or (`reference`) candle's autograd. Reports wall and CPU time.
-fn measure_default_encode(size: usize, reference: bool, reps: usize) -> Result<Value> {
+/// `colf-encode` with no flags, or with `HALF_REFINEMENT` when `half`) of view 0 of a colf-synth
+/// scene of `size`², with the refinement through the fused decoder or (`reference`) candle's
+/// autograd. Reports wall and CPU time.
+fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize) -> Result<Value> {
     use clap::Parser;
     let dir = tempfile::tempdir()?;
     let synth = sibling_binary("colf-synth")?;
@@ -514,7 +526,10 @@ fn measure_default_encode(size: usize, reference: bool, reps: usize) -> Result<V
         colf::image_io::ENCODE_FULL_RES_PIXELS,
     )?;
     let cameras = colf::camera::Cameras::read(&scene.join("transforms.json").to_string_lossy())?;
-    let args = colf::cli::encode::EncodeArgs::try_parse_from(["colf-encode", "view_000.png"])?;
+    let flags: &[&str] = if half { &HALF_REFINEMENT } else { &[] };
+    let args = colf::cli::encode::EncodeArgs::try_parse_from(
+        [&["colf-encode", "view_000.png"], flags].concat(),
+    )?;
     let opts = colf::encode::EncodeOptions {
         camera: Some(cameras.frames[0].clone()),
         source: "view_000.png".into(),
@@ -524,10 +539,15 @@ fn measure_default_encode(size: usize, reference: bool, reps: usize) -> Result<V
         colf::encode::encode_image(&model, &image, &opts).map(|_| ())
     })?;
     let path = if reference { "autograd" } else { "fused" };
-    let inference = model.config().default_inference();
+    let what = if half {
+        "half-length refinement"
+    } else {
+        "default encoding"
+    };
     Ok(json!({
-        "what": format!("default encoding ({} slots, {} tries, {} refinement steps; {path})",
-                        inference.slots, inference.tries, inference.refine),
+        "what": format!("{what} ({} slots, {} tries, {} refinement steps, lr {} / frames {}; {path})",
+                        opts.num_slots, opts.tries, opts.refine.steps, opts.refine.lr,
+                        opts.refine.frame_lr),
         "preset": "default", "resolution": size, "runs": runs,
         "ms": s * 1e3, "cpu_s": cpu, "peak_mib": peak_rss_mib()
     }))
@@ -565,6 +585,7 @@ fn run_one(spec: &Value) -> Result<Value> {
         Some("default-encode") => measure_default_encode(
             spec["size"].as_u64().unwrap_or(64) as usize,
             spec["reference"].as_bool().unwrap_or(false),
+            spec["half"].as_bool().unwrap_or(false),
             reps,
         ),
         Some("decoder") => measure_decoder(
@@ -623,6 +644,7 @@ fn main() -> Result<()> {
             for reference in [false, true] {
                 specs.push(json!({"kind": "default-encode", "size": size, "reference": reference}));
             }
+            specs.push(json!({"kind": "default-encode", "size": size, "half": true}));
         }
     }
     if !only_train {
@@ -810,6 +832,16 @@ fn main() -> Result<()> {
         };
         if let Some(x) = ratio(rows("fused"), rows("autograd"), "cpu_s") {
             println!("default encoding at {size}²: fused {x:.2}x less CPU time than autograd");
+        }
+        let half = results.iter().find(|r| {
+            r["what"]
+                .as_str()
+                .unwrap_or("")
+                .starts_with("half-length refinement")
+                && r["resolution"] == size
+        });
+        if let Some(x) = ratio(half, rows("fused"), "cpu_s") {
+            println!("half-length refinement at {size}²: {x:.2}x less CPU time than the default encoding");
         }
     }
     if let Some(dir) = std::path::Path::new(&out).parent() {
