@@ -193,6 +193,39 @@ fn light_field_with_shadows_matches_candle() {
     }
 }
 
+/// With the slots' own line scale (`slot_scale`), the fast renderer reads the slots' rays and
+/// shadow lines as the training code does, and the render is not the one without it.
+#[test]
+fn light_field_with_a_slot_scale_matches_candle() {
+    let overrides = |slot_scale: &str| -> Vec<String> {
+        [
+            "ray_fourier_freqs=6",
+            "shadow_head=true",
+            "shadow_light=[30, 55]",
+            "shadow_reach=2.5",
+            slot_scale,
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let scaled = Config::small()
+        .with_overrides(&overrides("slot_scale=1.5"))
+        .unwrap();
+    compare(&scaled, 4, 500, 2e-3);
+    let render = |cfg: &Config| {
+        let model = Colf::init(cfg, 3).unwrap();
+        let latents: Vec<Vec<f32>> = (0..4).map(|i| noise(64, 10 + i)).collect();
+        let (frames, origins, dirs) = scene(4, 300);
+        let prepared = model.prepare(&latents, &noise(64, 7)).unwrap();
+        let renderer = FastRenderer::new(&model, &prepared, &frames).unwrap();
+        renderer.render(&origins, &dirs, None, None).unwrap().rgb
+    };
+    let plain = Config::small()
+        .with_overrides(&overrides("slot_scale=0"))
+        .unwrap();
+    assert!(max_diff(&render(&scaled), &render(&plain)) > 1e-3);
+}
+
 /// With `shadow_reach`, the fast renderer leaves out the same shadow lines as the training
 /// code: the same render, and some ground rays without the shadow they had without a reach.
 #[test]

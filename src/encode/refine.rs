@@ -764,7 +764,8 @@ struct MovingLines {
     rays: usize,
     in_dim: usize,
     freqs: usize,
-    scene_scale: f64,
+    /// The foreground slots' [`crate::model::Config::line_scale`].
+    slot_scale: f64,
 }
 
 impl MovingLines {
@@ -778,7 +779,7 @@ impl MovingLines {
             rays,
             in_dim: cfg.ray_input_dim(),
             freqs: cfg.ray_fourier_freqs,
-            scene_scale: cfg.scene_scale,
+            slot_scale: cfg.line_scale(1),
         })
     }
 
@@ -857,7 +858,7 @@ impl CustomOp2 for MovingLines {
         let mut d_offset = vec![0f32; 3 * k];
         for (slot, (torque, axes)) in torques.iter().zip(&self.frame_axes).enumerate() {
             for (axis, a) in axes.iter().enumerate() {
-                d_offset[axis * k + slot] = (-a.dot(*torque) / self.scene_scale) as f32;
+                d_offset[axis * k + slot] = (-a.dot(*torque) / self.slot_scale) as f32;
             }
         }
         Ok((
@@ -1102,16 +1103,23 @@ mod tests {
 
     /// The one-pass contraction of the encoded lines' gradient against the written-out
     /// derivatives (`HostRays::frame_derivatives` through `Linearised`), for rotated frames,
-    /// Fourier features, shadow lines, and lines near and far.
+    /// Fourier features, shadow lines, lines near and far, and the slots' own line scale.
     #[test]
     fn moving_lines_give_the_gradient_of_the_written_out_derivatives() {
-        let overrides = [
-            "ray_fourier_freqs=4",
-            "shadow_head=true",
-            "shadow_light=[30, 55]",
-        ]
-        .map(String::from);
-        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        for slot_scale in ["slot_scale=0", "slot_scale=1.5"] {
+            let overrides = [
+                "ray_fourier_freqs=4",
+                "shadow_head=true",
+                "shadow_light=[30, 55]",
+                slot_scale,
+            ]
+            .map(String::from);
+            moving_lines_match(&Config::small().with_overrides(&overrides).unwrap());
+        }
+    }
+
+    fn moving_lines_match(cfg: &Config) {
+        let cfg = cfg.clone();
         let dev = candle_core::Device::Cpu;
         let frames: Vec<DMat4> = (0..3)
             .map(|i| {
@@ -1219,12 +1227,14 @@ mod tests {
     /// moves with that slot's frame.
     #[test]
     fn frame_gradients_match_finite_differences_of_the_loss() {
-        for from_nearest in [false, true] {
+        // And with the slots' own line scale (`Config::slot_scale`).
+        for (from_nearest, slot_scale) in [(false, 0.0), (true, 0.0), (false, 1.5)] {
             let mut cfg = Config::small();
             cfg.ray_fourier_freqs = 2;
             cfg.fg_locality = 2.0;
             cfg.attention_frames = true;
             cfg.background_from_nearest_slot = from_nearest;
+            cfg.slot_scale = slot_scale;
             check_frame_gradients(&cfg);
         }
     }

@@ -55,6 +55,14 @@ pub struct Config {
     /// World length that maps to 1 in the networks' inputs: Plücker moments are divided by it
     /// (then smoothly bounded), ordering values are produced in these units.
     pub scene_scale: f64,
+    /// World length that divides a foreground slot's Plücker moments instead of `scene_scale`
+    /// (0 = `scene_scale`, as before). An object lies within a unit or so of its slot's frame
+    /// origin, so at the scene's scale its rays' moments span a small part of the bounded range
+    /// and the Fourier octaves are coarse across it; a smaller length gives the same octaves
+    /// finer detail on the object. The background keeps `scene_scale`. Absent in older files
+    /// (= 0), and not written when 0, so their identity is unchanged.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub slot_scale: f64,
     /// The background is rendered from a zero latent, whatever the image (the paper's choice
     /// for CLEVR): the background cannot explain image-specific content, which is left to the
     /// foreground slots. Applied inside the model, so training and inference agree. Absent in
@@ -303,6 +311,7 @@ impl Config {
             compositor_hidden: 32,
             compositor_hidden_layers: 1,
             scene_scale: 8.0,
+            slot_scale: 0.0,
             zero_background: false,
             static_background: false,
             background_reader: false,
@@ -374,14 +383,25 @@ impl Config {
             .unwrap_or(InferenceConfig::one_pass(self.default_slots))
     }
 
+    /// The length that divides the Plücker moments of field `field`'s lines (0: the
+    /// background, whose frame is the world; k ≥ 1: foreground slot k − 1): `scene_scale`, or
+    /// `slot_scale` for a foreground slot when set.
+    pub fn line_scale(&self, field: usize) -> f64 {
+        if field > 0 && self.slot_scale > 0.0 {
+            self.slot_scale
+        } else {
+            self.scene_scale
+        }
+    }
+
     /// With `shadow_reach` = ρ: the largest squared bounded moment |m̂|² of a shadow line that
     /// is evaluated. The encoding stores m̂ = (m/s)/√(1 + |m/s|²), |m| the line's distance from
-    /// the frame origin and s `scene_scale` (`rays.rs`), so |m| ≤ ρ ⟺ |m̂|² ≤ (ρ/s)²/(1 + (ρ/s)²).
-    /// None: every shadow line is evaluated.
+    /// the frame origin and s a foreground slot's [`Config::line_scale`] (`rays.rs`), so |m| ≤ ρ
+    /// ⟺ |m̂|² ≤ (ρ/s)²/(1 + (ρ/s)²). None: every shadow line is evaluated.
     pub fn shadow_reach_bound(&self) -> Option<f32> {
         (self.shadow_reach > 0.0 && self.shadow_light.is_some()).then(|| {
             // (ρ/s)²/(1 + (ρ/s)²) written so that a huge reach gives 1 (every line), not ∞/∞.
-            let inverse = (self.scene_scale / self.shadow_reach).powi(2);
+            let inverse = (self.line_scale(1) / self.shadow_reach).powi(2);
             (1.0 / (1.0 + inverse)) as f32
         })
     }
@@ -475,6 +495,9 @@ impl Config {
         }
         if !(self.scene_scale.is_finite() && self.scene_scale > 0.0) {
             bail!("model config: `scene_scale` must be a positive number");
+        }
+        if !(self.slot_scale.is_finite() && self.slot_scale >= 0.0) {
+            bail!("model config: `slot_scale` must be a length ≥ 0 (0: `scene_scale`)");
         }
         if self.static_background && !self.zero_background {
             bail!("model config: `static_background` needs `zero_background` (an image-dependent background needs its hypernetwork)");
@@ -697,6 +720,21 @@ mod tests {
         let q = with(3.0).shadow_reach_bound().unwrap() as f64;
         let r = 3.0 / lit.scene_scale;
         assert!((q - r * r / (1.0 + r * r)).abs() < 1e-7);
+        // With the slots' own line scale, at that scale (the line's moment in a slot's frame).
+        let scaled = Config {
+            slot_scale: 1.5,
+            ..with(3.0)
+        };
+        let q = scaled.shadow_reach_bound().unwrap() as f64;
+        assert!((q - 4.0 / 5.0).abs() < 1e-7, "{q}");
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            let cfg = Config {
+                slot_scale: bad,
+                ..Config::small()
+            };
+            assert!(cfg.validate().is_err(), "{bad}");
+        }
+        assert!(!Config::small().to_json().contains("slot_scale"));
         assert_eq!(with(1e300).shadow_reach_bound(), Some(1.0));
         assert_eq!(with(1e-300).shadow_reach_bound(), Some(0.0));
         for bad in [-1.0, f64::NAN, f64::INFINITY] {

@@ -7,7 +7,8 @@
 //!   the background's frame is the world;
 //! - Plücker coordinates (d', m') with m' = o' × d': |m'| is the distance of the line from the
 //!   frame's origin, so it grows with the scene's extent. The authors fed it raw; here it is
-//!   divided by `scene_scale` and bounded smoothly, m̂ = (m'/s) / √(1 + |m'/s|²): ≈ m'/s near the
+//!   divided by s = `Config::line_scale` (`scene_scale`, or for a foreground slot `slot_scale`
+//!   when set) and bounded smoothly, m̂ = (m'/s) / √(1 + |m'/s|²): ≈ m'/s near the
 //!   object, |m̂| < 1 always, so a camera 10⁴ units away or a slot moved 10⁴ units away gives
 //!   finite, bounded inputs (such rays pass far from the slot and all look alike to it);
 //! - optional Fourier features sin/cos(2^k·π·x) of the 6 coordinates (`ray_fourier_freqs`);
@@ -361,7 +362,7 @@ impl HostRays {
                         &self.coords[at..at + in_dim],
                         d_frame,
                         frame_axis,
-                        cfg.scene_scale,
+                        cfg.line_scale(1 + k),
                         cfg.ray_fourier_freqs,
                     );
                     if let (Some(out), Some((encoded, _)), Some(to_light)) =
@@ -374,7 +375,7 @@ impl HostRays {
                             &encoded[at..at + in_dim],
                             inv.transform_vector3(line_dir).normalize(),
                             frame_axis,
-                            cfg.scene_scale,
+                            cfg.line_scale(1 + k),
                             cfg.ray_fourier_freqs,
                         );
                     }
@@ -472,9 +473,11 @@ fn encode_fields(
     let in_dim = cfg.ray_input_dim();
     dest.par_chunks_mut(lines.len() * in_dim)
         .zip(frames.par_iter())
-        .for_each(|(field, (inv, _))| {
+        .enumerate()
+        .for_each(|(f, (field, (inv, _)))| {
+            let scale = cfg.line_scale(f);
             for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
-                encode_line(out, inv, *o, *d, cfg.scene_scale, cfg.ray_fourier_freqs);
+                encode_line(out, inv, *o, *d, scale, cfg.ray_fourier_freqs);
             }
         });
 }
@@ -562,15 +565,59 @@ mod tests {
     /// ordering shift by its own where it follows that frame, nothing else.
     #[test]
     fn frame_derivatives_match_forward_differences() {
-        for from_nearest in [false, true] {
+        // And with the slots' own line scale.
+        for (from_nearest, slot_scale) in [(false, 0.0), (true, 0.0), (false, 1.5)] {
             let mut cfg = Config::small();
             cfg.ray_fourier_freqs = 3;
             cfg.fg_locality = 2.0;
             cfg.shadow_head = true;
             cfg.shadow_light = Some([30.0, 55.0]);
             cfg.background_from_nearest_slot = from_nearest;
+            cfg.slot_scale = slot_scale;
             check_frame_derivatives(&cfg);
         }
+    }
+
+    /// `slot_scale` changes the foreground slots' encodings (moments divided by it) and leaves
+    /// the background's, whose frame is the world, at the scene's scale; set to `scene_scale`
+    /// it is the model without it, to the bit.
+    #[test]
+    fn the_slots_line_scale_applies_to_the_slots_only() {
+        let frames = [DMat4::from_translation(DVec3::new(-2.0, 1.5, 0.4))];
+        let origins = [DVec3::new(8.0, -9.0, 7.0), DVec3::new(-10.0, 2.5, 6.0)];
+        let dirs = [
+            DVec3::new(-0.6, 0.8, -0.5).normalize(),
+            DVec3::new(1.0, -0.1, -0.6).normalize(),
+        ];
+        let coords = |slot_scale: f64| {
+            let cfg = Config {
+                ray_fourier_freqs: 2,
+                slot_scale,
+                ..Config::small()
+            };
+            let rays = HostRays::new(
+                &cfg,
+                &[SceneRays {
+                    slot_to_world: &frames,
+                    origins: &origins,
+                    dirs: &dirs,
+                }],
+            )
+            .unwrap();
+            let field = rays.coords.len() / 2;
+            (rays.coords[..field].to_vec(), rays.coords[field..].to_vec())
+        };
+        let (bg, fg) = coords(0.0);
+        let (bg_scaled, fg_scaled) = coords(1.5);
+        assert_eq!(bg, bg_scaled);
+        assert_ne!(fg, fg_scaled);
+        let per_ray = fg.len() / 2;
+        assert_eq!(coords(Config::small().scene_scale), (bg, fg));
+        // The slot's encoding is the line's at that scale.
+        let mut expected = vec![0f32; per_ray];
+        let inv = frames[0].inverse();
+        encode_line(&mut expected, &inv, origins[0], dirs[0], 1.5, 2);
+        assert_eq!(&fg_scaled[..expected.len()], &expected[..]);
     }
 
     fn check_frame_derivatives(cfg: &Config) {

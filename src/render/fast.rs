@@ -736,6 +736,8 @@ impl FastRenderer {
         let is_active = |ri: usize| active.is_none_or(|a| a.fields[ri * s + si]);
         let inv = &self.inverses[si];
         let shadow_head = lf.shadow.as_ref().filter(|_| si > 0);
+        // The length this field's moments are divided by (`Config::line_scale`).
+        let line_scale = lf.shift_cfg.line_scale(si);
         // Shadow density along the light, as `ShadowHead`: the field on the line from the light
         // through the ray's ground point, on the rays the shadow mask names.
         if let Some((sh, to_light)) = shadow_head.and_then(|sh| Some((sh, sh.to_light?))) {
@@ -748,7 +750,7 @@ impl FastRenderer {
                 if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
                     let j = sc.lit_rows.len();
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-                    encode_line(out, inv, o, d, lf.scene_scale, lf.freqs);
+                    encode_line(out, inv, o, d, line_scale, lf.freqs);
                     // A line beyond the slot's reach casts nothing: not evaluated.
                     if within_shadow_reach(out, sh.reach) {
                         sc.lit_rows.push(ri);
@@ -771,7 +773,7 @@ impl FastRenderer {
         // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
         for (j, &ri) in sc.rows.iter().enumerate() {
             let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-            encode_line(out, inv, origins[ri], dirs[ri], lf.scene_scale, lf.freqs);
+            encode_line(out, inv, origins[ri], dirs[ri], line_scale, lf.freqs);
         }
         let x_w = lf.run_field(si, m, sc);
         // Shadow density from the ray's own features (no `shadow_light`).
