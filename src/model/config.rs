@@ -524,6 +524,9 @@ impl Config {
             if self.shadow_head {
                 bail!("model config: `shadow_head` applies to light-field models, not the volumetric baseline");
             }
+            if self.slot_scale > 0.0 {
+                bail!("model config: `slot_scale` applies to light-field models, not the volumetric baseline");
+            }
             v.validate()?;
         }
         if let Some(inference) = &self.inference {
@@ -735,6 +738,11 @@ mod tests {
             assert!(cfg.validate().is_err(), "{bad}");
         }
         assert!(!Config::small().to_json().contains("slot_scale"));
+        let volumetric = Config {
+            slot_scale: 1.5,
+            ..Config::volumetric()
+        };
+        assert!(volumetric.validate().is_err());
         assert_eq!(with(1e300).shadow_reach_bound(), Some(1.0));
         assert_eq!(with(1e-300).shadow_reach_bound(), Some(0.0));
         for bad in [-1.0, f64::NAN, f64::INFINITY] {
