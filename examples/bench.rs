@@ -820,27 +820,19 @@ fn main() -> Result<()> {
         }
     }
     for size in [64, 128] {
-        let rows = |path: &str| {
+        // The encoding row of `kind` ("default encoding", "half-length refinement") through
+        // `path` ("fused", "autograd") at this size.
+        let rows = |kind: &str, path: &str| {
             results.iter().find(|r| {
-                r["what"]
-                    .as_str()
-                    .unwrap_or("")
-                    .starts_with("default encoding")
-                    && r["what"].as_str().unwrap_or("").contains(path)
-                    && r["resolution"] == size
+                let what = r["what"].as_str().unwrap_or("");
+                what.starts_with(kind) && what.contains(path) && r["resolution"] == size
             })
         };
-        if let Some(x) = ratio(rows("fused"), rows("autograd"), "cpu_s") {
+        let default = rows("default encoding", "fused");
+        if let Some(x) = ratio(default, rows("default encoding", "autograd"), "cpu_s") {
             println!("default encoding at {size}²: fused {x:.2}x less CPU time than autograd");
         }
-        let half = results.iter().find(|r| {
-            r["what"]
-                .as_str()
-                .unwrap_or("")
-                .starts_with("half-length refinement")
-                && r["resolution"] == size
-        });
-        if let Some(x) = ratio(half, rows("fused"), "cpu_s") {
+        if let Some(x) = ratio(rows("half-length refinement", "fused"), default, "cpu_s") {
             println!("half-length refinement at {size}²: {x:.2}x less CPU time than the default encoding");
         }
     }

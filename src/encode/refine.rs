@@ -1119,7 +1119,6 @@ mod tests {
     }
 
     fn moving_lines_match(cfg: &Config) {
-        let cfg = cfg.clone();
         let dev = candle_core::Device::Cpu;
         let frames: Vec<DMat4> = (0..3)
             .map(|i| {
@@ -1152,9 +1151,9 @@ mod tests {
             origins: &origins,
             dirs: &dirs,
         }];
-        let host = HostRays::new(&cfg, &scene).unwrap();
+        let host = HostRays::new(cfg, &scene).unwrap();
         let derivatives: Vec<FrameDerivatives> = (0..3)
-            .map(|axis| host.frame_derivatives(&cfg, &scene, axis).unwrap())
+            .map(|axis| host.frame_derivatives(cfg, &scene, axis).unwrap())
             .collect();
         let s = 1 + frames.len();
         let in_dim = cfg.ray_input_dim();
@@ -1188,7 +1187,7 @@ mod tests {
             let fast = gradient_of(
                 x.apply_op2(
                     offset.as_tensor(),
-                    MovingLines::new(&cfg, &frames, r).unwrap(),
+                    MovingLines::new(cfg, &frames, r).unwrap(),
                 )
                 .unwrap(),
             );
