@@ -5,11 +5,14 @@
 //! rays; and the same bytes whatever the thread count.
 
 use candle_core::{DType, Device, Tensor, Var};
+use colf::model::decode_kernel::RayMotion;
+use colf::model::rays::MovingRays;
 use colf::model::{Colf, Config, RayBatch, SceneRays};
 use glam::{DMat4, DQuat, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, StandardNormal};
+use std::sync::Arc;
 
 /// A small config with every knob of the default model on.
 fn base() -> Config {
@@ -516,6 +519,7 @@ fn a_support_leaves_out_exactly_the_fields_it_drops() {
         scenes: b,
         fields: s,
         rays: r,
+        motion: None,
     };
     let target =
         Tensor::from_vec(normal(&mut rng, b * r * 3, 0.3), (b, r, 3), &Device::Cpu).unwrap();
@@ -600,6 +604,7 @@ fn a_full_support_changes_nothing() {
             scenes: 1,
             fields: 1 + k,
             rays: r,
+            motion: None,
         };
         let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
         let out = if sparse {
@@ -626,5 +631,137 @@ fn a_full_support_changes_nothing() {
     };
     for (a, b) in run(true).iter().zip(&run(false)) {
         assert!(relative_error(a, b) < 1e-6, "{}", relative_error(a, b));
+    }
+}
+
+/// Rays that move linearly with two offsets t: x(t) = x₀ + t₀·D₀ + t₁·D₁ for the coordinates,
+/// the shadow lines and the shifts, each with its own random directions D.
+#[derive(Debug)]
+struct LinearMotion {
+    coords: [Vec<f32>; 2],
+    lines: [Vec<f32>; 2],
+    shift: [Vec<f32>; 2],
+    per_field: usize,
+}
+
+impl RayMotion for LinearMotion {
+    fn offsets(&self) -> usize {
+        2
+    }
+
+    fn field_gradient(
+        &self,
+        u: usize,
+        coords: (&[f32], &[f32]),
+        lines: Option<(&[f32], &[f32])>,
+    ) -> Vec<f64> {
+        let block = u * self.per_field..(u + 1) * self.per_field;
+        let dot = |g: &[f32], d: &[f32]| g.iter().zip(d).map(|(a, b)| (a * b) as f64).sum::<f64>();
+        (0..2)
+            .map(|n| {
+                dot(coords.1, &self.coords[n][block.clone()])
+                    + lines.map_or(0.0, |(_, g)| dot(g, &self.lines[n][block.clone()]))
+            })
+            .collect()
+    }
+
+    fn shift_gradient(&self, d_shift: &[f32]) -> Vec<f64> {
+        (0..2)
+            .map(|n| {
+                d_shift
+                    .iter()
+                    .zip(&self.shift[n])
+                    .map(|(a, b)| (a * b) as f64)
+                    .sum()
+            })
+            .collect()
+    }
+}
+
+/// The kernel's gradient of moving rays' offsets (contracted inside its field passes) is the
+/// gradient of the same rays written as candle functions of the offsets (the packed rays), for
+/// two scenes of 7 slots, with shadow lines, with and without a support; the values agree.
+#[test]
+fn moving_rays_give_the_packed_rays_gradients() {
+    let cfg = base();
+    let colf = model(&cfg, 21);
+    let net = colf.model().clone();
+    let (b, k, r, d) = (2usize, 7usize, 90usize, cfg.slot_dim);
+    let s = 1 + k;
+    let mut rng = StdRng::seed_from_u64(12);
+    let fg = Var::from_vec(normal(&mut rng, b * k * d, 1.0), (b, k, d), &Device::Cpu).unwrap();
+    let bg = Var::from_vec(normal(&mut rng, b * d, 1.0), (b, d), &Device::Cpu).unwrap();
+    let base_rays = random_batch(&cfg, &mut rng, b, k, r, (false, true));
+    let (lines0, ground) = base_rays.shadow_lines.clone().unwrap();
+    let n_coords = base_rays.coords.elem_count();
+    let mut directions = |n: usize| [normal(&mut rng, n, 0.1), normal(&mut rng, n, 0.1)];
+    let motion = Arc::new(LinearMotion {
+        coords: directions(n_coords),
+        lines: directions(n_coords),
+        shift: directions(b * r * s),
+        per_field: r * cfg.ray_input_dim(),
+    });
+    // Field 3 of scene 0 and field 5 of scene 1 on every other ray only.
+    let mut support: Vec<Vec<u32>> = vec![(0..r as u32).collect(); b * s];
+    support[3] = (0..r as u32).step_by(2).collect();
+    support[s + 5] = (1..r as u32).step_by(2).collect();
+    for sparse in [false, true] {
+        let run = |moving: bool| {
+            let offsets = Var::zeros(2, DType::F32, &Device::Cpu).unwrap();
+            let t = offsets.as_tensor();
+            let moved = |x: &Tensor, dirs: &[Vec<f32>; 2]| {
+                let mut x = x.clone();
+                for (n, dir) in dirs.iter().enumerate() {
+                    let dir = Tensor::from_vec(dir.clone(), x.shape(), &Device::Cpu).unwrap();
+                    let tn = t.narrow(0, n, 1).unwrap().broadcast_as(x.shape()).unwrap();
+                    x = (x + (dir * tn).unwrap()).unwrap();
+                }
+                x
+            };
+            let rays = RayBatch {
+                coords: base_rays.coords.clone(),
+                shift: base_rays.shift.clone(),
+                shadow_lines: Some((lines0.clone(), ground.clone())),
+                base: base_rays.base.clone(),
+                scenes: b,
+                fields: s,
+                rays: r,
+                motion: moving.then(|| MovingRays {
+                    offsets: t.clone(),
+                    motion: motion.clone(),
+                }),
+            };
+            let rays = if moving {
+                rays
+            } else {
+                RayBatch {
+                    coords: moved(&rays.coords, &motion.coords),
+                    shift: moved(&rays.shift, &motion.shift),
+                    shadow_lines: Some((moved(&lines0, &motion.lines), ground.clone())),
+                    ..rays
+                }
+            };
+            let fields = net.prepare(fg.as_tensor(), bg.as_tensor()).unwrap();
+            let out = if sparse {
+                net.decode_with_support(&fields, &rays, support.clone())
+                    .unwrap()
+            } else {
+                net.decode(&fields, &rays).unwrap()
+            };
+            let loss = (out.rgb.sqr().unwrap().sum_all().unwrap()
+                + out.log_weights.exp().unwrap().sum_all().unwrap())
+            .unwrap();
+            let grads = loss.backward().unwrap();
+            [t, fg.as_tensor(), bg.as_tensor()]
+                .iter()
+                .map(|t| grads.get(t).unwrap().clone())
+                .chain([out.rgb])
+                .collect::<Vec<Tensor>>()
+        };
+        let (moving, packed) = (run(true), run(false));
+        assert!(norm(&packed[0]) > 1e-3, "the offsets must carry gradient");
+        for (a, b) in moving.iter().zip(&packed) {
+            assert!(relative_error(a, b) < 1e-5, "{}", relative_error(a, b));
+        }
     }
 }

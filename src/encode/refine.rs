@@ -15,6 +15,8 @@ use crate::camera::Frame;
 use crate::codes::Slot;
 use crate::image_io::RgbImage32;
 use crate::metrics::psnr_from_mse;
+use crate::model::decode_kernel::RayMotion;
+use crate::model::rays::MovingRays;
 use crate::model::{Colf, ColfNet, HostRays, RayBatch, SceneRays};
 use crate::optim::{Adam, AdamConfig};
 use anyhow::{bail, Context, Result};
@@ -23,6 +25,7 @@ use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// How to refine (serialised as is into colf-eval's JSON, so a refined score says how it was
 /// made).
@@ -483,6 +486,20 @@ impl Pixels {
         offset: &Var,
         pick: &[usize],
     ) -> Result<(RayBatch, Tensor)> {
+        let explicit = model.model().reference_decoder;
+        self.linearised_batch_as(model, frames, offset, pick, explicit)
+    }
+
+    /// [`Pixels::linearised_batch`] as [`MovingRays`] for the decode kernel, or (`explicit`)
+    /// as tensors that are candle functions of the offsets, for candle's autograd.
+    fn linearised_batch_as(
+        &self,
+        model: &Colf,
+        frames: &[DMat4],
+        offset: &Var,
+        pick: &[usize],
+        explicit: bool,
+    ) -> Result<(RayBatch, Tensor)> {
         let cfg = model.config();
         let dev = model.device();
         let (at, target) = self.host_batch(model, frames, pick)?;
@@ -504,15 +521,25 @@ impl Pixels {
         let offset = offset.as_tensor();
         // Coordinates and shadow lines move with the frames (the lines' ground flags do not).
         let moving = MovingLines::new(cfg, frames, r)?;
+        let shift = Linearised::new(d_shift, FieldLayout::Minor { background_follows }, s);
+        if !explicit {
+            let motion = FrameMotion {
+                lines: moving,
+                shift,
+            };
+            let motion = Some(MovingRays {
+                offsets: offset.clone(),
+                motion: Arc::new(motion),
+            });
+            return Ok((RayBatch { motion, ..batch }, target));
+        }
+        // The explicit form, for candle's autograd through the reference decoder.
         let coords = batch.coords.apply_op2(offset, moving.clone())?;
         let shadow_lines = match batch.shadow_lines {
             Some((lines, on_ground)) => Some((lines.apply_op2(offset, moving)?, on_ground)),
             None => None,
         };
-        let shift = batch.shift.apply_op2(
-            offset,
-            Linearised::new(d_shift, FieldLayout::Minor { background_follows }, s),
-        )?;
+        let shift = batch.shift.apply_op2(offset, shift)?;
         Ok((
             RayBatch {
                 coords,
@@ -629,6 +656,7 @@ enum FieldLayout {
 /// origins' offsets [3, K] (the second input); the backward gives the offsets' gradient. One
 /// pass over the values, where the same as candle ops took about a dozen passes and most of a
 /// refinement step's time.
+#[derive(Debug)]
 struct Linearised {
     derivatives: Vec<Vec<f32>>,
     layout: FieldLayout,
@@ -704,6 +732,17 @@ impl CustomOp2 for Linearised {
         grad: &Tensor,
     ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
         let g = grad.flatten_all()?.to_vec1::<f32>()?;
+        let d_offset: Vec<f32> = self.contract(&g).into_iter().map(|v| v as f32).collect();
+        Ok((
+            None,
+            Some(Tensor::from_vec(d_offset, offset.shape(), offset.device())?),
+        ))
+    }
+}
+
+impl Linearised {
+    /// The offsets' gradient [3, K] from the values' gradient `g`.
+    fn contract(&self, g: &[f32]) -> Vec<f64> {
         let (s, k) = (self.fields, self.fields - 1);
         let mut d_offset = vec![0f64; 3 * k];
         for (axis, d) in self.derivatives.iter().enumerate() {
@@ -737,11 +776,7 @@ impl CustomOp2 for Linearised {
                 }
             }
         }
-        let d_offset: Vec<f32> = d_offset.into_iter().map(|v| v as f32).collect();
-        Ok((
-            None,
-            Some(Tensor::from_vec(d_offset, offset.shape(), offset.device())?),
-        ))
+        d_offset
     }
 }
 
@@ -757,7 +792,7 @@ impl CustomOp2 for Linearised {
 /// by −(a × d')/s; the bounded moment m̂ = m/√(1 + |m|²) and its Fourier features follow (see
 /// `rays::encode_line_derivative`). With g the gradient of a line's encoding and g_m that of
 /// its moment, g·∂x/∂δ = −a·(d' × g_m)/s: per field, one 3-vector Σ d' × g_m over the lines.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 struct MovingLines {
     /// Per foreground frame, A⁻¹·e for the three world axes.
     frame_axes: Vec<[DVec3; 3]>,
@@ -781,6 +816,12 @@ impl MovingLines {
             freqs: cfg.ray_fourier_freqs,
             slot_scale: cfg.line_scale(1),
         })
+    }
+
+    /// The gradient of foreground slot `slot`'s frame offset along the three world axes, from
+    /// its lines' torque ([`MovingLines::moment_torque`]).
+    fn offset_gradient(&self, slot: usize, torque: DVec3) -> [f64; 3] {
+        self.frame_axes[slot].map(|a| -a.dot(torque) / self.slot_scale)
     }
 
     /// Σ over the lines of one field of d' × g_m, from their encodings `x` and gradients `g`.
@@ -856,15 +897,63 @@ impl CustomOp2 for MovingLines {
             })
             .collect();
         let mut d_offset = vec![0f32; 3 * k];
-        for (slot, (torque, axes)) in torques.iter().zip(&self.frame_axes).enumerate() {
-            for (axis, a) in axes.iter().enumerate() {
-                d_offset[axis * k + slot] = (-a.dot(*torque) / self.slot_scale) as f32;
+        for (slot, torque) in torques.iter().enumerate() {
+            for (axis, d) in self.offset_gradient(slot, *torque).into_iter().enumerate() {
+                d_offset[axis * k + slot] = d as f32;
             }
         }
         Ok((
             None,
             Some(Tensor::from_vec(d_offset, offset.shape(), offset.device())?),
         ))
+    }
+}
+
+/// How a refinement batch's rays move with the foreground frame origins' offsets [3, K], for
+/// the decode kernel ([`RayMotion`]): the coordinates and shadow lines as [`MovingLines`], the
+/// ordering shifts as [`Linearised`], contracted inside the kernel's parallel field passes.
+/// The same gradient as those two ops on the explicit batch (tested), without handing candle
+/// the gradient of every encoded ray.
+#[derive(Debug)]
+struct FrameMotion {
+    lines: MovingLines,
+    shift: Linearised,
+}
+
+impl RayMotion for FrameMotion {
+    fn offsets(&self) -> usize {
+        3 * self.lines.frame_axes.len()
+    }
+
+    fn field_gradient(
+        &self,
+        u: usize,
+        coords: (&[f32], &[f32]),
+        lines: Option<(&[f32], &[f32])>,
+    ) -> Vec<f64> {
+        let k = self.lines.frame_axes.len();
+        let mut d_offset = vec![0f64; 3 * k];
+        // One scene: field u is slot u − 1; the background does not move.
+        if u == 0 {
+            return d_offset;
+        }
+        let mut torque = self.lines.moment_torque(coords.0, coords.1);
+        if let Some((x, g)) = lines {
+            torque += self.lines.moment_torque(x, g);
+        }
+        for (axis, d) in self
+            .lines
+            .offset_gradient(u - 1, torque)
+            .into_iter()
+            .enumerate()
+        {
+            d_offset[axis * k + u - 1] = d;
+        }
+        d_offset
+    }
+
+    fn shift_gradient(&self, d_shift: &[f32]) -> Vec<f64> {
+        self.shift.contract(d_shift)
     }
 }
 
@@ -1235,6 +1324,87 @@ mod tests {
             cfg.background_from_nearest_slot = from_nearest;
             cfg.slot_scale = slot_scale;
             check_frame_gradients(&cfg);
+        }
+    }
+
+    /// The moving rays' gradients (contracted inside the decode kernel) are those of the
+    /// explicit batch (candle ops of the offsets, the kernel's packed rays), for the latents and
+    /// the frame offsets, with shadow lines, a reach and a slot scale; the values are the same.
+    #[test]
+    fn moving_rays_give_the_explicit_batchs_gradients() {
+        let base = [
+            "shadow_head=true",
+            "shadow_light=[30, 55]",
+            "ray_fourier_freqs=3",
+            "attention_frames=true",
+            "fg_locality=2",
+        ];
+        for extra in [&[][..], &["shadow_reach=2", "slot_scale=1.5"][..]] {
+            let sets: Vec<String> = base.iter().chain(extra).map(|s| s.to_string()).collect();
+            let cfg = Config::small().with_overrides(&sets).unwrap();
+            // A shadow head that reads its features (it starts at zero weights), so the shadow
+            // lines carry gradient.
+            let mut model = Colf::init(&cfg, 4).unwrap();
+            let dims = model.parameters()["heads.shadow.weight"].dims().to_vec();
+            let dev = candle_core::Device::Cpu;
+            let n = dims.iter().product::<usize>();
+            let values: Vec<f32> = (0..n).map(|i| 0.5 * (i as f32 * 0.7).sin()).collect();
+            let weight = Tensor::from_vec(values, dims, &dev).unwrap();
+            let bias = Tensor::new(&[-0.5f32], &dev).unwrap();
+            model = model.with_tensor("heads.shadow.weight", weight).unwrap();
+            model = model.with_tensor("heads.shadow.bias", bias).unwrap();
+            let (d, k) = (cfg.slot_dim, 3);
+            let cam = camera(10);
+            let image = target(&model, &latents(k, d, 1), &vec![0.1; d], &cam);
+            let mut frames = vec![cam.camera_to_world; k];
+            for (i, f) in frames.iter_mut().enumerate() {
+                f.w_axis = glam::DVec4::new(0.6 * i as f64 - 0.6, 0.2, 0.1 * i as f64, 1.0);
+            }
+            let pixels = Pixels::gather(&[&InputView::new(&cam, &image)]);
+            let pick: Vec<usize> = (0..pixels.origins.len()).rev().step_by(2).collect();
+            let net = model.model();
+            let run = |explicit: bool| {
+                let fg = Var::from_tensor(
+                    &Tensor::from_vec(latents(k, d, 2).concat(), (1, k, d), model.device())
+                        .unwrap(),
+                )
+                .unwrap();
+                let bg = Tensor::from_vec(vec![0.1f32; d], (1, d), model.device()).unwrap();
+                let offset = Var::zeros((3, k), candle_core::DType::F32, model.device()).unwrap();
+                let (rays, target) = pixels
+                    .linearised_batch_as(&model, &frames, &offset, &pick, explicit)
+                    .unwrap();
+                assert_eq!(rays.motion.is_some(), !explicit);
+                let fields = net.prepare(fg.as_tensor(), &bg).unwrap();
+                let out = net.decode(&fields, &rays).unwrap();
+                let rgb = out.rgb.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+                let loss = (&out.rgb - &target)
+                    .unwrap()
+                    .sqr()
+                    .unwrap()
+                    .sum_all()
+                    .unwrap();
+                let grads = loss.backward().unwrap();
+                let flat = |t: &Tensor| grads.get(t).unwrap().flatten_all().unwrap();
+                let g_offset = flat(offset.as_tensor()).to_vec1::<f32>().unwrap();
+                let g_fg = flat(fg.as_tensor()).to_vec1::<f32>().unwrap();
+                (rgb, g_offset, g_fg)
+            };
+            let (moving, explicit) = (run(false), run(true));
+            assert_eq!(moving.0, explicit.0, "the values");
+            for (what, a, b) in [
+                ("offsets", &moving.1, &explicit.1),
+                ("latents", &moving.2, &explicit.2),
+            ] {
+                let scale = b.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+                assert!(scale > 1e-4, "{what}: no gradient to compare");
+                for (x, y) in a.iter().zip(b) {
+                    assert!(
+                        (x - y).abs() <= 1e-4 * scale,
+                        "{what}: {x} vs {y} ({extra:?})"
+                    );
+                }
+            }
         }
     }
 

@@ -36,7 +36,7 @@ use super::net::{Decoded, LightFieldDecoder};
 use super::rays::{within_shadow_reach, RayBatch};
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Storage, Tensor};
 use rayon::prelude::*;
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 /// Rays per chunk of a field pass: a chunk's activations (128 × 256 floats per layer at the
 /// paper's width) stay in the core's L2 cache between a layer's forward and the next.
@@ -662,8 +662,9 @@ struct Saved {
 }
 
 /// Where the rays come from: inside the op's third input (when they need gradients: the
-/// input is [coords | shadow lines | shift] flattened), or held by the op with only the
-/// coordinates as its third input (no copies).
+/// input is [coords | shadow lines | shift] flattened), held by the op with only the
+/// coordinates as its third input (no copies), or held by the op with the third input the
+/// offsets they move with ([`RayMotion`]).
 #[derive(Debug)]
 pub enum RayInputs {
     Packed {
@@ -674,6 +675,35 @@ pub enum RayInputs {
         on_ground: Option<Vec<f32>>,
         shift: Tensor,
     },
+    Moving {
+        coords: Tensor,
+        lines: Option<Tensor>,
+        on_ground: Option<Vec<f32>>,
+        shift: Tensor,
+        motion: Arc<dyn RayMotion>,
+    },
+}
+
+/// Encoded rays that are a function of a few offsets (test-time refinement moves the
+/// foreground frames' origins, `encode/refine.rs`), linearised at offsets 0: the op's third
+/// input is the offsets, and its backward contracts each field's ray gradients to theirs inside
+/// the parallel field passes. Handing candle the gradient of every encoded ray instead (the
+/// packed input) cost a refinement step about ten serial passes over megabytes: the packing, a
+/// zeroed buffer and a sum per tensor in candle's backward, the copies of the ops that contract
+/// it.
+pub trait RayMotion: Send + Sync + std::fmt::Debug {
+    /// Number of offsets (the op's third input).
+    fn offsets(&self) -> usize;
+    /// dL/d(offsets) through field `u`'s (= b·S + s) encoded rays `coords` [R, in] and, where
+    /// the field casts shadows on lines, its shadow lines, each with its gradient.
+    fn field_gradient(
+        &self,
+        u: usize,
+        coords: (&[f32], &[f32]),
+        lines: Option<(&[f32], &[f32])>,
+    ) -> Vec<f64>;
+    /// dL/d(offsets) through the ordering shifts, from their gradient [B, R, S].
+    fn shift_gradient(&self, d_shift: &[f32]) -> Vec<f64>;
 }
 
 /// The op: see the module documentation.
@@ -712,6 +742,30 @@ fn storage_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32
         candle_core::bail!("decode kernel: {what} must be contiguous")
     };
     Ok(&v[a..b])
+}
+
+/// Runs `f` on rays whose lines and shifts the op holds (`nl`, `ns`: their expected lengths).
+fn held_rays<T>(
+    coords: &[f32],
+    lines: Option<&Tensor>,
+    on_ground: Option<&[f32]>,
+    shift: &Tensor,
+    (nl, ns): (usize, usize),
+    f: impl FnOnce(&Rays) -> Result<T>,
+) -> Result<T> {
+    let line_guard = lines.map(|t| t.storage_and_layout());
+    let shift_guard = shift.storage_and_layout();
+    let lines = match &line_guard {
+        Some((g, l)) if nl > 0 => Some(held_f32(g, l, "shadow lines", nl)?),
+        _ => None,
+    };
+    let shift = held_f32(&shift_guard.0, shift_guard.1, "shifts", ns)?;
+    f(&Rays {
+        coords,
+        lines,
+        on_ground,
+        shift,
+    })
 }
 
 /// Unit ranges of the ray passes: (scene, first ray, rays).
@@ -787,22 +841,40 @@ impl DecodeOp {
                 on_ground,
                 shift,
             } => {
-                let line_guard = lines.as_ref().map(|t| t.storage_and_layout());
-                let shift_guard = shift.storage_and_layout();
-                let lines = match &line_guard {
-                    Some((g, l)) if nl > 0 => Some(held_f32(g, l, "shadow lines", nl)?),
-                    _ => None,
-                };
-                let shift = held_f32(&shift_guard.0, shift_guard.1, "shifts", ns)?;
                 if input.len() != nc {
                     candle_core::bail!("decode kernel: ray coordinates have the wrong length");
                 }
-                f(&Rays {
-                    coords: input,
-                    lines,
-                    on_ground: on_ground.as_deref(),
+                held_rays(
+                    input,
+                    lines.as_ref(),
+                    on_ground.as_deref(),
                     shift,
-                })
+                    (nl, ns),
+                    f,
+                )
+            }
+            RayInputs::Moving {
+                coords,
+                lines,
+                on_ground,
+                shift,
+                motion,
+            } => {
+                // The held rays are those at offsets 0: other offsets would need the motion's
+                // forward, which refinement never asks for (it moves the frames between steps).
+                if input.len() != motion.offsets() || input.iter().any(|v| *v != 0.0) {
+                    candle_core::bail!("decode kernel: ray offsets must be zero when read");
+                }
+                let (guard, layout) = coords.storage_and_layout();
+                let coords = held_f32(&guard, layout, "ray coordinates", nc)?;
+                held_rays(
+                    coords,
+                    lines.as_ref(),
+                    on_ground.as_deref(),
+                    shift,
+                    (nl, ns),
+                    f,
+                )
             }
         }
     }
@@ -1129,7 +1201,7 @@ impl CustomOp3 for DecodeOp {
             candle_core::bail!("decode kernel: rays must be on the CPU")
         };
         let ray_data = storage_f32(r_cpu, r_layout, "rays")?;
-        let want_rays = matches!(self.rays, RayInputs::Packed { .. });
+        let want_rays = !matches!(self.rays, RayInputs::Held { .. });
         let saved = self.saved.lock().expect("decode kernel state");
         if saved.fields.len() != sh.scenes * sh.fields {
             candle_core::bail!("decode kernel: backward without a forward");
@@ -1142,7 +1214,7 @@ impl CustomOp3 for DecodeOp {
         let d_fields = Tensor::from_vec(d_fields, field_params.shape(), dev)?;
         let d_shared = Tensor::from_vec(d_shared, shared_params.shape(), dev)?;
         let d_rays = match d_rays {
-            Some(packed) => Some(Tensor::from_vec(packed, ray_input.shape(), dev)?),
+            Some(d) => Some(Tensor::from_vec(d, ray_input.shape(), dev)?),
             None => None,
         };
         Ok((Some(d_fields), Some(d_shared), d_rays))
@@ -1151,7 +1223,7 @@ impl CustomOp3 for DecodeOp {
 
 impl DecodeOp {
     /// The whole backward: gradients of the field parameters, the shared parameters and (with
-    /// `want_rays`) the packed rays.
+    /// `want_rays`) the op's third input: the packed rays, or the offsets of moving ones.
     fn backward(
         &self,
         saved: &Saved,
@@ -1192,22 +1264,28 @@ impl DecodeOp {
             }
         }
         // 2. Field passes in reverse: heads, light fields, down to the generated parameters.
+        // Moving rays: each field's ray gradients stay in the unit, contracted to the offsets.
+        let motion = match &self.rays {
+            RayInputs::Moving { motion, .. } => Some(motion.as_ref()),
+            _ => None,
+        };
+        let packed = want_rays && motion.is_none();
         let (nc, nl, _) = self.packed_len();
         let mut d_fields = vec![0f32; fields.len()];
-        let mut d_coords = vec![0f32; if want_rays { nc } else { 0 }];
-        let mut d_lines = vec![0f32; if want_rays { nl } else { 0 }];
+        let mut d_coords = vec![0f32; if packed { nc } else { 0 }];
+        let mut d_lines = vec![0f32; if packed { nl } else { 0 }];
         let per_field_input = r_n * sh.in_dim;
-        let coord_pieces: Vec<Option<&mut [f32]>> = if want_rays {
+        let coord_pieces: Vec<Option<&mut [f32]>> = if packed {
             d_coords.chunks_mut(per_field_input).map(Some).collect()
         } else {
             (0..b_n * s_n).map(|_| None).collect()
         };
-        let line_pieces: Vec<Option<&mut [f32]>> = if want_rays && nl > 0 {
+        let line_pieces: Vec<Option<&mut [f32]>> = if packed && nl > 0 {
             d_lines.chunks_mut(per_field_input).map(Some).collect()
         } else {
             (0..b_n * s_n).map(|_| None).collect()
         };
-        let field_shared: Vec<Vec<f32>> = d_fields
+        let field_parts: Vec<(Vec<f32>, Option<Vec<f64>>)> = d_fields
             .par_chunks_mut(sh.field_params)
             .zip(coord_pieces)
             .zip(line_pieces)
@@ -1218,7 +1296,23 @@ impl DecodeOp {
                     ordering: &d_ordering[u * r_n..(u + 1) * r_n],
                     sigma: &d_sigma[u * r_n..(u + 1) * r_n],
                 };
-                self.field_backward(
+                let Some(motion) = motion else {
+                    let shared_part = self.field_backward(
+                        u,
+                        &saved.fields[u],
+                        fields,
+                        shared,
+                        rays,
+                        grads,
+                        d_params,
+                        d_x,
+                        d_l,
+                    );
+                    return (shared_part, None);
+                };
+                let mut d_x = vec![0f32; per_field_input];
+                let mut d_l = vec![0f32; if nl > 0 { per_field_input } else { 0 }];
+                let shared_part = self.field_backward(
                     u,
                     &saved.fields[u],
                     fields,
@@ -1226,27 +1320,44 @@ impl DecodeOp {
                     rays,
                     grads,
                     d_params,
-                    d_x,
-                    d_l,
-                )
+                    Some(&mut d_x),
+                    (nl > 0).then_some(&mut d_l[..]),
+                );
+                let block = u * per_field_input..(u + 1) * per_field_input;
+                let lines = rays.lines.map(|l| (&l[block.clone()], &d_l[..]));
+                let d_offsets = motion.field_gradient(u, (&rays.coords[block], &d_x), lines);
+                (shared_part, Some(d_offsets))
             })
             .collect();
         // 3. The shared parameters' gradient: every unit's share, summed in unit order.
         let mut d_shared = vec![0f32; shared.len()];
-        for part in field_shared
+        for part in field_parts
             .iter()
+            .map(|p| &p.0)
             .chain(ray_grads.iter().map(|g| &g.shared))
         {
             for (d, v) in d_shared.iter_mut().zip(part) {
                 *d += v;
             }
         }
-        let d_rays = want_rays.then(|| {
-            let mut packed = d_coords;
-            packed.extend(d_lines);
-            packed.extend(d_shift);
-            packed
-        });
+        let d_rays = match motion {
+            // The offsets' gradient: the shifts' share, then each field's in field order.
+            Some(motion) => {
+                let mut sum = motion.shift_gradient(&d_shift);
+                for part in field_parts.iter().filter_map(|p| p.1.as_ref()) {
+                    for (d, v) in sum.iter_mut().zip(part) {
+                        *d += v;
+                    }
+                }
+                Some(sum.into_iter().map(|v| v as f32).collect())
+            }
+            None => want_rays.then(|| {
+                let mut packed = d_coords;
+                packed.extend(d_lines);
+                packed.extend(d_shift);
+                packed
+            }),
+        };
         (d_fields, d_shared, d_rays)
     }
 }
@@ -1699,7 +1810,21 @@ pub fn decode(
     };
     let tracked =
         rays.coords.track_op() || rays.shift.track_op() || lines.is_some_and(|l| l.track_op());
-    let (ray_input, ray_inputs) = if tracked {
+    let (ray_input, ray_inputs) = if let Some(moving) = &rays.motion {
+        if tracked {
+            candle_core::bail!("decode kernel: moving rays must not need gradients themselves");
+        }
+        (
+            moving.offsets.flatten_all()?,
+            RayInputs::Moving {
+                coords: rays.coords.contiguous()?,
+                lines: lines.map(|l| l.contiguous()).transpose()?,
+                on_ground,
+                shift: rays.shift.contiguous()?,
+                motion: moving.motion.clone(),
+            },
+        )
+    } else if tracked {
         let mut packed = vec![rays.coords.flatten_all()?];
         if let Some(l) = lines {
             packed.push(l.flatten_all()?);

@@ -224,6 +224,9 @@ impl ColfNet {
         let lf = self.light_field_or_err()?;
         let (b, s, r) = (rays.scenes, rays.fields, rays.rays);
         self.check_fields(fields, rays)?;
+        if rays.motion.is_some() {
+            candle_core::bail!("the reference decoder takes moving rays in their explicit form");
+        }
         let features = fields.forward(&rays.coords)?; // [B·S, R, F]
         let (color, ordering) = lf.heads.forward(&features)?;
         let mut colors = color.reshape((b, s, r, 3))?.permute((0, 2, 1, 3))?; // [B, R, S, 3]

@@ -29,10 +29,12 @@
 //!   negative shift and comes first.
 
 use super::config::Config;
+use super::decode_kernel::RayMotion;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use glam::{DMat4, DVec3};
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// One scene's rays: its K foreground slot frames and R world rays.
 #[derive(Clone, Copy, Debug)]
@@ -57,6 +59,16 @@ pub struct RayBatch {
     pub scenes: usize,
     pub fields: usize,
     pub rays: usize,
+    /// When the rays move with a few offsets (refinement moving the frames): the tensors above
+    /// are the rays at offsets 0, and gradients reach the offsets through the decode kernel.
+    pub motion: Option<MovingRays>,
+}
+
+/// The offsets a [`RayBatch`] moves with (a variable [N], zero when read), and how.
+#[derive(Clone, Debug)]
+pub struct MovingRays {
+    pub offsets: Tensor,
+    pub motion: Arc<dyn RayMotion>,
 }
 
 /// The 6 bounded Plücker coordinates of a ray in a frame given by its inverse `world_to_frame`.
@@ -204,6 +216,7 @@ impl HostRays {
             scenes: b,
             fields: s,
             rays: r,
+            motion: None,
         })
     }
 }
