@@ -15,7 +15,7 @@
 //!   derivatives, then per field the heads' and the light field's layers (two `gemm`s each: the
 //!   input's and the weight's gradient), down to the generated weights, the shared heads'
 //!   parameters and — when they are differentiable, as in refinement with moving frames — the
-//!   encoded rays and ordering shifts.
+//!   encoded rays and ordering shifts, or the few offsets they move with ([`RayMotion`]).
 //!
 //! Units run in parallel on rayon's threads with single-threaded `gemm`s; each unit's share of a
 //! shared gradient is kept apart and the shares are summed in unit order, so the result is the
@@ -694,8 +694,9 @@ pub enum RayInputs {
 pub trait RayMotion: Send + Sync + std::fmt::Debug {
     /// Number of offsets (the op's third input).
     fn offsets(&self) -> usize;
-    /// dL/d(offsets) through field `u`'s (= b·S + s) encoded rays `coords` [R, in] and, where
-    /// the field casts shadows on lines, its shadow lines, each with its gradient.
+    /// dL/d(offsets) through field `u`'s (= b·S + s) encoded rays `coords` [R, in] and, with
+    /// shadow lines, its lines [R, in] (their gradient 0 where the field casts none), each
+    /// given with its gradient.
     fn field_gradient(
         &self,
         u: usize,
