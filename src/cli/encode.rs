@@ -36,7 +36,7 @@ or deletes it moves or deletes all of it. --redundant 0 keeps every slot.\n\n\
 Unset, --slots, --tries, --refine, --refine-lr and --refine-frame-lr take the model's default \
 encoding (its config's `inference`, written by colf-train configure; a model without one is encoded in one pass with \
 its training slot count). The bundled models' is 12 slots, 4 tries and 50 refinement steps: the \
-most accurate encoding measured (docs/refinement.md; about 2.1 s of CPU an image, docs/speed.md). \
+most accurate encoding measured (docs/refinement.md; about 1.8 s of CPU an image, docs/speed.md). \
 --fast is the one-pass encoding (the model's training slot count, about 0.03 s an image), for \
 when speed matters more.\n\n\
 Several images of one scene (IMAGE... with --camera, image i seen by --frame's i-th frame, \

@@ -1297,22 +1297,15 @@ impl DecodeOp {
                     ordering: &d_ordering[u * r_n..(u + 1) * r_n],
                     sigma: &d_sigma[u * r_n..(u + 1) * r_n],
                 };
-                let Some(motion) = motion else {
-                    let shared_part = self.field_backward(
-                        u,
-                        &saved.fields[u],
-                        fields,
-                        shared,
-                        rays,
-                        grads,
-                        d_params,
-                        d_x,
-                        d_l,
-                    );
-                    return (shared_part, None);
+                // Moving rays: the field's ray gradients in buffers of its own, contracted below.
+                let mut own = motion.map(|_| {
+                    let lines = if nl > 0 { per_field_input } else { 0 };
+                    (vec![0f32; per_field_input], vec![0f32; lines])
+                });
+                let (d_x, d_l) = match own.as_mut() {
+                    Some((x, l)) => (Some(&mut x[..]), (nl > 0).then_some(&mut l[..])),
+                    None => (d_x, d_l),
                 };
-                let mut d_x = vec![0f32; per_field_input];
-                let mut d_l = vec![0f32; if nl > 0 { per_field_input } else { 0 }];
                 let shared_part = self.field_backward(
                     u,
                     &saved.fields[u],
@@ -1321,13 +1314,15 @@ impl DecodeOp {
                     rays,
                     grads,
                     d_params,
-                    Some(&mut d_x),
-                    (nl > 0).then_some(&mut d_l[..]),
+                    d_x,
+                    d_l,
                 );
-                let block = u * per_field_input..(u + 1) * per_field_input;
-                let lines = rays.lines.map(|l| (&l[block.clone()], &d_l[..]));
-                let d_offsets = motion.field_gradient(u, (&rays.coords[block], &d_x), lines);
-                (shared_part, Some(d_offsets))
+                let d_offsets = motion.zip(own).map(|(motion, (d_x, d_l))| {
+                    let block = u * per_field_input..(u + 1) * per_field_input;
+                    let lines = rays.lines.map(|l| (&l[block.clone()], &d_l[..]));
+                    motion.field_gradient(u, (&rays.coords[block], &d_x), lines)
+                });
+                (shared_part, d_offsets)
             })
             .collect();
         // 3. The shared parameters' gradient: every unit's share, summed in unit order.
