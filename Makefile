@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender model-unsupervised model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -249,9 +249,9 @@ eval_json = grep -qs "\"model\":\"$$($(RELEASE)/colf-train info $(2) | sed -n 's
 resume_or_init = $(if $(wildcard $(1).ckpt),--resume,--init $(2))
 model: build
 	@mkdir -p $(MODEL_RUN)
-	test -d $(MODEL_RUN)/data/train || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train --scenes 400 -q
-	test -d $(MODEL_RUN)/data/train2k || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/train2k --scenes 2000 -q
-	test -d $(MODEL_RUN)/data/test || $(RELEASE)/colf-synth --out $(MODEL_RUN)/data/test --scenes 100 --split test -q
+	$(call synth_set,$(MODEL_RUN)/data/train,--scenes 400)
+	$(call synth_set,$(MODEL_RUN)/data/train2k,--scenes 2000)
+	$(call synth_set,$(MODEL_RUN)/data/test,--scenes 100 --split test)
 	test -f $(MODEL_RUN)/stage2.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(STAGE12_FLAGS) --out $(MODEL_RUN)/stage1.safetensors \
 	  --steps 2250 --warmup 500 --seed 9 \
@@ -303,10 +303,8 @@ model-blender: build
 	  $(RELEASE)/colf-synth --engine blender --out $(ADAPT_RUN)/data/train.tmp --scenes 320 -q --force \
 	  && find $(ADAPT_RUN)/data/train.tmp -name '*.mask.png' -delete \
 	  && mv $(ADAPT_RUN)/data/train.tmp $(ADAPT_RUN)/data/train; }
-	test -d $(ADAPT_RUN)/data/val || $(RELEASE)/colf-synth --engine blender \
-	  --out $(ADAPT_RUN)/data/val --scenes 32 --seed 7 -q
-	test -d $(ADAPT_RUN)/data/test || $(RELEASE)/colf-synth --engine blender \
-	  --out $(ADAPT_RUN)/data/test --scenes 100 --split test -q
+	$(call synth_set,$(ADAPT_RUN)/data/val,--engine blender --scenes 32 --seed 7)
+	$(call synth_set,$(ADAPT_RUN)/data/test,--engine blender --scenes 100 --split test)
 	$(RELEASE)/colf-train --data $(ADAPT_RUN)/data/train --out $(ADAPT_RUN)/blender.safetensors \
 	  --views 4 --rays 256 --steps 1500 --lr 5e-5 --warmup 200 --decay-from 700 --final-lr 5e-6 \
 	  --seed 31 --eval-data $(ADAPT_RUN)/data/val --eval-every 500 --eval-scenes 16 \
@@ -334,17 +332,23 @@ UNSUP_SETS ?=
 UNSUP_COMMON := --proposals --attention-mask-weight 0.1 \
   --eval-data $(UNSUP_RUN)/data/test --checkpoint-every 250 --keep-every 2000
 UNSUP_LATE := $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train2k --eval-every 2000 --eval-scenes 16
+# $(call synth_set,DIR,FLAGS): colf-synth's scenes in DIR, written to DIR.tmp and renamed when
+# complete, so a stopped target never leaves a half-made set that the next run would accept.
+define synth_set
+	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp $(2) -q --force && mv $(1).tmp $(1); }
+endef
 # $(call unlabelled_set,DIR,SCENES): colf-synth's training scenes without their mask files.
 define unlabelled_set
 	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) $(3) -q --force \
 	  && find $(1).tmp -name '*.mask.png' -delete && mv $(1).tmp $(1); }
 endef
-model-unsupervised: build
+# The recipe's data alone (what make model-paper also trains on).
+data-unsupervised: build
 	@mkdir -p $(UNSUP_RUN)/data
 	$(call unlabelled_set,$(UNSUP_RUN)/data/train,400)
 	$(call unlabelled_set,$(UNSUP_RUN)/data/train2k,2000)
-	test -d $(UNSUP_RUN)/data/test || $(RELEASE)/colf-synth --out $(UNSUP_RUN)/data/test \
-	  --scenes 100 --split test -q
+	$(call synth_set,$(UNSUP_RUN)/data/test,--scenes 100 --split test)
+model-unsupervised: data-unsupervised
 	test -f $(UNSUP_RUN)/u2.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(UNSUP_COMMON) --mask-weight 0.1 --data $(UNSUP_RUN)/data/train \
 	  --out $(UNSUP_RUN)/u1.safetensors --eval-every 1000 --eval-scenes 8 --object-fraction 0.2 \
@@ -391,19 +395,19 @@ model-default:
 BOTH_RUN ?= out/both
 # Where the result is installed (empty: nowhere; make model-paper keeps its result in its run).
 BOTH_INSTALL ?= models/default.safetensors
-model-both: build
-	test -f $(UNSUP_RUN)/model.safetensors || { echo "model-both: run make model-unsupervised first" >&2; exit 1; }
+# The recipe's data alone: Blender, analytic and randomised-look scenes without mask files, the
+# Blender validation and 128² test scenes (what make model-paper also trains on).
+data-both: data-unsupervised
 	@mkdir -p $(BOTH_RUN)/data
-	test -d $(BOTH_RUN)/data/blender || $(RELEASE)/colf-synth --engine blender \
-	  --out $(BOTH_RUN)/data/blender --scenes 600 -q
-	test -d $(BOTH_RUN)/data/randomised || $(RELEASE)/colf-synth --randomize-look \
-	  --out $(BOTH_RUN)/data/randomised --scenes 400 --seed 51 -q
-	test -d $(BOTH_RUN)/data/val || $(RELEASE)/colf-synth --engine blender \
-	  --out $(BOTH_RUN)/data/val --scenes 32 --seed 7 -q
-	test -d $(BOTH_RUN)/data/test128 || $(RELEASE)/colf-synth --engine blender \
-	  --out $(BOTH_RUN)/data/test128 --scenes 100 --split test --size 128 -q
+	$(call synth_set,$(BOTH_RUN)/data/blender,--engine blender --scenes 600)
+	$(call synth_set,$(BOTH_RUN)/data/randomised,--randomize-look --scenes 400 --seed 51)
+	$(call synth_set,$(BOTH_RUN)/data/val,--engine blender --scenes 32 --seed 7)
+	$(call synth_set,$(BOTH_RUN)/data/test128,--engine blender --scenes 100 --split test --size 128)
 	test -d $(BOTH_RUN)/data/mix || scripts/mix_scenes.sh $(BOTH_RUN)/data/mix \
 	  b:$(BOTH_RUN)/data/blender:600 a:$(UNSUP_RUN)/data/train2k:600 r:$(BOTH_RUN)/data/randomised:400
+model-both: build
+	test -f $(UNSUP_RUN)/model.safetensors || { echo "model-both: run make model-unsupervised first" >&2; exit 1; }
+	$(MAKE) data-both
 	$(RELEASE)/colf-train --data $(BOTH_RUN)/data/mix --out $(BOTH_RUN)/model.safetensors \
 	  --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
 	  --views 4 --rays 256 --steps 5000 --lr 5e-5 --warmup 100 --decay-from 2500 --final-lr 5e-6 \
@@ -417,54 +421,53 @@ model-both: build
 	$(if $(BOTH_INSTALL),cp $(BOTH_RUN)/model.safetensors $(BOTH_INSTALL))
 
 # The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the bundled
-# default model's recipe — make model-unsupervised, then make model-both — with the decoder at the
-# `paper` preset's sizes (light fields 2×256 → 64 features, colour/ordering heads and compositor
-# 3×128; hypernetworks 64 wide), everything else as the default model's. Runs for days on one
+# default model grown to the `paper` preset's decoder (light fields 2×256 → 64 features,
+# colour/ordering heads and compositor 3×128; hypernetworks 64 wide) without changing what it
+# computes (`colf-train --init` with `--set`, src/model/grow.rs: new units start with zero
+# outgoing weights, new layers as the identity), then trained on the rest of the paper's
+# schedule on model-both's mix of looks without labels. Growing skips the ~88,000 steps of the
+# default model's recipe that a fresh paper-sized decoder needs to reach the same point (run p
+# did them: level with the small decoder after them, docs/training-log.md). Runs for days on one
 # core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and re-running
 # resumes where it stopped (nohup, one thread: see docs/training.md). The result stays in
-# $(PAPER_RUN)/both/model.safetensors until it is shown better than the bundled default.
+# $(PAPER_RUN)/p7.safetensors until it is shown better than the bundled default.
 PAPER_RUN ?= $(HOME)/colf-runs/paper
+PAPER_INIT ?= models/default.safetensors
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
   --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3 \
   --set hypernet_hidden=64
-# After the default model's stages (about 83,000 steps at 64² in all), the rest of the paper's
-# schedule — its 150,000 iterations at 64², then 60,000 at 128², Adam 5e-5 — on model-both's mix
-# of looks (Blender, analytic and randomised scenes, no labels): p6 to 150,000 steps at 64², then
-# p7 at 128² on the same mix rendered at 128². Scored at the end on 100 held-out 128² scenes of
-# each look ($(PAPER_RUN)/p7-{analytic,blender}128{,-fast}.json), its curves in
-# $(PAPER_RUN)/training.png.
+# p6: 30,000 steps at 64² (run p's p6, from a fresh decoder's model-both stage, was level on
+# held-out scenes from about step 20,000 at 5e-5); p7: the paper's 60,000 at 128² on the same mix
+# rendered at 128². Scored at the end on 100 held-out 128² scenes of each look
+# ($(PAPER_RUN)/p7-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
 PAPER_LATE := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
-# From p6 on, a slot's shadow lines are evaluated only within 3 units of it (`shadow_reach`,
-# docs/model.md): clevr567's objects and their shadows lie well within, and the far lines were
-# most of the shadow work (docs/speed.md). p7 inherits it from p6's config.
+# A slot's shadow lines are evaluated only within 3 units of it (`shadow_reach`, docs/model.md):
+# clevr567's objects and their shadows lie well within, and the far lines were most of the
+# shadow work (docs/speed.md). p7 inherits it from p6's config.
 PAPER_REACH := --set shadow_reach=3
 PAPER_128 := $(PAPER_RUN)/data128
 model-paper: build
-	$(MAKE) model-unsupervised UNSUP_RUN=$(PAPER_RUN)/unsup UNSUP_SETS='$(PAPER_DECODER)'
-	$(MAKE) model-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both BOTH_INSTALL=
+	$(MAKE) data-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both
 	test -f $(PAPER_RUN)/p7.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_RUN)/both/data/mix \
-	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 67000 \
-	  --lr 5e-5 --warmup 200 --decay-from 50000 --final-lr 1e-5 --seed 71 \
-	  $(call resume_or_init,$(PAPER_RUN)/p6.safetensors,$(PAPER_RUN)/both/model.safetensors $(PAPER_REACH))
+	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 30000 \
+	  --lr 5e-5 --warmup 200 --decay-from 20000 --final-lr 1e-5 --seed 71 \
+	  $(call resume_or_init,$(PAPER_RUN)/p6.safetensors,$(PAPER_INIT) $(PAPER_DECODER) $(PAPER_REACH))
 	@mkdir -p $(PAPER_128)
 	$(call unlabelled_set,$(PAPER_128)/blender,600,--engine blender --size 128)
 	$(call unlabelled_set,$(PAPER_128)/analytic,600,--size 128)
 	$(call unlabelled_set,$(PAPER_128)/randomised,400,--randomize-look --seed 51 --size 128)
-	test -d $(PAPER_128)/val || $(RELEASE)/colf-synth --engine blender --out $(PAPER_128)/val \
-	  --scenes 16 --seed 7 --size 128 -q
-	test -d $(PAPER_128)/test-analytic || $(RELEASE)/colf-synth --out $(PAPER_128)/test-analytic \
-	  --scenes 100 --split test --size 128 -q
+	$(call synth_set,$(PAPER_128)/val,--engine blender --scenes 16 --seed 7 --size 128)
+	$(call synth_set,$(PAPER_128)/test-analytic,--scenes 100 --split test --size 128)
 	test -d $(PAPER_128)/mix || scripts/mix_scenes.sh $(PAPER_128)/mix b:$(PAPER_128)/blender:600 \
 	  a:$(PAPER_128)/analytic:600 r:$(PAPER_128)/randomised:400
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
 	  --out $(PAPER_RUN)/p7.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
 	  --final-lr 5e-6 --seed 72 \
 	  $(call resume_or_init,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p6.safetensors)
-	$(RELEASE)/colf-train plot $(foreach s,u1 u2 u3 u4 u5,$(PAPER_RUN)/unsup/$(s).safetensors.log.jsonl) \
-	  $(PAPER_RUN)/both/model.safetensors.log.jsonl $(PAPER_RUN)/p6.safetensors.log.jsonl \
-	  $(PAPER_RUN)/p7.safetensors.log.jsonl -o $(PAPER_RUN)/training.png
+	$(RELEASE)/colf-train plot $(PAPER_RUN)/p6.safetensors.log.jsonl \
+	  $(PAPER_RUN)/p7.safetensors.log.jsonl --label p6 --label p7 -o $(PAPER_RUN)/training.png
 	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-analytic128.json)
 	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-analytic128-fast.json,--fast)
 	$(call eval_json,$(PAPER_RUN)/both/data/test128,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p7-blender128.json)
@@ -476,8 +479,8 @@ model-paper: build
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT, is run p's clevr567 model with the paper-sized decoder (make model-paper's
-# model-both stage; the bundled small decoder's run stalled at 23.5 dB on chairs), with shadow
+# ROOM_INIT, is the bundled default model grown to the paper-sized decoder as make model-paper
+# grows it (the bundled small decoder's own run stalled at 23.5 dB on chairs), with shadow
 # lines within 3 units (ROOM_SETS). Held-out: 16 validation scenes (64², then 128²) scored as it
 # trains, 100 test scenes at 128² at the end. Data in $(ROOM_DATA)/PRESET/data, checkpoints and
 # logs in $(ROOM_RUN)/PRESET, outside the work tree; re-running resumes. Run with one thread
@@ -485,8 +488,8 @@ model-paper: build
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
-ROOM_INIT ?= $(PAPER_RUN)/both/model.safetensors
-ROOM_SETS := --set shadow_reach=3
+ROOM_INIT ?= models/default.safetensors
+ROOM_SETS := $(PAPER_DECODER) --set shadow_reach=3
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
 # $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset.
@@ -494,14 +497,12 @@ define room_model
 	@mkdir -p $(ROOM_DATA)/$(1)/data $(ROOM_RUN)/$(1)
 	$(call unlabelled_set,$(ROOM_DATA)/$(1)/data/train,$(2),--preset $(1))
 	$(call unlabelled_set,$(ROOM_DATA)/$(1)/data/train128,$(2),--preset $(1) --size 128)
-	test -d $(ROOM_DATA)/$(1)/data/val || $(RELEASE)/colf-synth --preset $(1) \
-	  --out $(ROOM_DATA)/$(1)/data/val --scenes 16 --seed 7 -q
-	test -d $(ROOM_DATA)/$(1)/data/val128 || $(RELEASE)/colf-synth --preset $(1) \
-	  --out $(ROOM_DATA)/$(1)/data/val128 --scenes 16 --seed 7 --size 128 -q
-	test -d $(ROOM_DATA)/$(1)/data/test128 || $(RELEASE)/colf-synth --preset $(1) \
-	  --out $(ROOM_DATA)/$(1)/data/test128 --scenes 100 --split test --size 128 -q
+	$(call synth_set,$(ROOM_DATA)/$(1)/data/val,--preset $(1) --scenes 16 --seed 7)
+	$(call synth_set,$(ROOM_DATA)/$(1)/data/val128,--preset $(1) --scenes 16 --seed 7 --size 128)
+	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
+	  --size 128)
 	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
-	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper (its model-both stage) first, or set ROOM_INIT" >&2; exit 1; }
+	  { echo "model-$(1): no initial model at $(ROOM_INIT): set ROOM_INIT" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
@@ -551,12 +552,10 @@ model-city: build
 	@mkdir -p $(CITY_RUN)/data
 	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
 	$(call unlabelled_set,$(CITY_RUN)/data/train128,500,--preset city-block --size 128)
-	test -d $(CITY_RUN)/data/val || $(RELEASE)/colf-synth --preset city-block \
-	  --out $(CITY_RUN)/data/val --scenes 16 --seed 7 -q
-	test -d $(CITY_RUN)/data/val128 || $(RELEASE)/colf-synth --preset city-block \
-	  --out $(CITY_RUN)/data/val128 --scenes 16 --seed 7 --size 128 -q
-	test -d $(CITY_RUN)/data/test128 || $(RELEASE)/colf-synth --preset city-block \
-	  --out $(CITY_RUN)/data/test128 --scenes 100 --split test --size 128 -q
+	$(call synth_set,$(CITY_RUN)/data/val,--preset city-block --scenes 16 --seed 7)
+	$(call synth_set,$(CITY_RUN)/data/val128,--preset city-block --scenes 16 --seed 7 --size 128)
+	$(call synth_set,$(CITY_RUN)/data/test128,--preset city-block --scenes 100 --split test \
+	  --size 128)
 	test -f $(CITY_RUN)/c1.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(CITY_COMMON) --slots 0 --mask-weight 0 --attention-mask-weight 0 \
 	  --object-fraction 0 --data $(CITY_RUN)/data/train \

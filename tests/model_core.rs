@@ -289,6 +289,65 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
 }
 
 #[test]
+fn a_model_grown_to_the_paper_decoders_shape_renders_the_same_and_trains_it_all() {
+    // The bundled small decoder grown to the `paper` preset's shape (wider light fields and
+    // features, wider and deeper heads and compositor), here on the tiny model with shadows.
+    let cfg = Config {
+        shadow_head: true,
+        ..tiny()
+    };
+    let small = Colf::init(&cfg, 3).unwrap();
+    let paper_shape = [
+        format!("lfn_hidden={}", 2 * cfg.lfn_hidden),
+        format!("lfn_features={}", 2 * cfg.lfn_features),
+        format!("head_hidden={}", 2 * cfg.head_hidden),
+        "head_hidden_layers=3".into(),
+        format!("compositor_hidden={}", 4 * cfg.compositor_hidden),
+        "compositor_hidden_layers=3".into(),
+    ];
+    let grown_cfg = cfg.with_overrides(&paper_shape).unwrap();
+    let grown = small.reconfigured(&grown_cfg, 4, "m").unwrap();
+    let params = grown.parameters();
+    assert_eq!(params["heads.color.layers.3.weight"].dims(), [3, 16]);
+    assert_eq!(params["compositor.v.layers.3.weight"].dims(), [1, 32]);
+    assert_eq!(params["heads.shadow.weight"].dims(), [1, 16]);
+    // Shadows visible, so the growth of the shadow head's input is checked too.
+    let shadowed = |c: Colf| {
+        c.with_tensor(
+            "heads.shadow.bias",
+            Tensor::new(&[0.05f32], &Device::Cpu).unwrap(),
+        )
+        .unwrap()
+    };
+    let (small, grown) = (shadowed(small), shadowed(grown));
+    for (a, b) in rendered(&small).iter().zip(&rendered(&grown)) {
+        let gap = relative_gap(a, b);
+        assert!(gap < 1e-5, "renders changed: {gap}");
+    }
+    // Every new weight trains, the zero weights that read the new units and features included.
+    let grads = assert_gradients_reach_every_parameter(grown);
+    let grad = |name: &str| grads.iter().find(|(n, _)| n == name).unwrap().1.clone();
+    let reads_new_units = grad("heads.ordering.layers.3.weight")
+        .narrow(1, cfg.head_hidden, cfg.head_hidden)
+        .unwrap();
+    assert!(abs_sum(&reads_new_units) > 0.0);
+    let reads_new_features = grad("heads.color.layers.0.weight")
+        .narrow(1, cfg.lfn_features, cfg.lfn_features)
+        .unwrap();
+    assert!(abs_sum(&reads_new_features) > 0.0);
+    // Shrinking is refused, naming the file.
+    let shallower = grown_cfg
+        .with_overrides(&["head_hidden_layers=2".into()])
+        .unwrap();
+    let err = Colf::init(&grown_cfg, 1)
+        .unwrap()
+        .reconfigured(&shallower, 4, "m.safetensors")
+        .err()
+        .unwrap();
+    assert!(err.to_string().starts_with("m.safetensors: "), "{err}");
+}
+
+#[test]
 fn a_fixed_background_grows_into_one_that_reads_the_image() {
     let cfg = zero_background_tiny();
     let fixed = Colf::init(&cfg, 3).unwrap();

@@ -197,12 +197,18 @@ pub fn encode_once(
     seed: u64,
 ) -> Result<(Vec<Slot>, Vec<f32>)> {
     let image = view.image;
-    let encoded = model.encode(
+    let objects = if model.config().frames_from_residual {
+        Some(view.object_pixels(model)?)
+    } else {
+        None
+    };
+    let encoded = model.encode_within(
         &image.data,
         image.h as usize,
         image.w as usize,
         opts.num_slots,
         seed,
+        objects,
     )?;
     let frames = crate::model::frames::slot_frames(
         model.config(),

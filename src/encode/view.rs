@@ -9,6 +9,7 @@ use anyhow::Result;
 use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
+use std::sync::OnceLock;
 
 /// Pixels of the input view compared when judging encodings (a seeded subset when the image
 /// has more): enough to rank encodings, few enough that judging costs little next to encoding.
@@ -24,6 +25,9 @@ pub struct InputView<'a> {
     pub dirs: Vec<DVec3>,
     /// The pixels encodings are judged on.
     pub compared: ComparedPixels,
+    /// With `Config::frames_from_residual`: 1 on the pixels the model's background alone does
+    /// not draw, 0 elsewhere (computed once, by [`InputView::object_pixels`]).
+    objects: OnceLock<Vec<f32>>,
 }
 
 impl<'a> InputView<'a> {
@@ -47,7 +51,33 @@ impl<'a> InputView<'a> {
             origins,
             dirs,
             compared,
+            objects: OnceLock::new(),
         }
+    }
+
+    /// The pixels (row-major, 1 or 0) that `model`'s background, rendered alone at this view's
+    /// camera, does not explain: its object proposals against that render, as
+    /// `--proposals-against` makes them in training (`Config::frames_from_residual` places
+    /// slots from them).
+    pub fn object_pixels(&self, model: &Colf) -> Result<&[f32]> {
+        if let Some(objects) = self.objects.get() {
+            return Ok(objects);
+        }
+        let background = vec![0f32; model.config().slot_dim];
+        let prepared = model.prepare(&[], &background)?;
+        let render = FastRenderer::new(model, &prepared, &[])?.render(
+            &self.origins,
+            &self.dirs,
+            None,
+            None,
+        )?;
+        let ids =
+            crate::train::known_background::proposals_against_render(self.image, &render.rgb)?;
+        let objects = ids
+            .iter()
+            .map(|&id| f32::from(u8::from(crate::proposals::is_instance(id))))
+            .collect();
+        Ok(self.objects.get_or_init(|| objects))
     }
 
     /// The mean squared colour error, on the compared pixels, of slots (`fg_latents` in frames
@@ -155,5 +185,51 @@ mod tests {
         let b = InputView::new(&camera, &img);
         assert_eq!(a.compared.origins.len(), COMPARE_PIXELS);
         assert_eq!(a.compared.origins, b.compared.origins);
+    }
+
+    /// The pixels a static background's render lacks are the object pixels, with a camera
+    /// given for twice the image's size (its rays are scaled to the image).
+    #[test]
+    fn object_pixels_are_what_the_background_does_not_draw() {
+        let mut cfg = crate::model::Config::small();
+        cfg.zero_background = true;
+        cfg.static_background = true;
+        let model = Colf::init(&cfg, 3).unwrap();
+        let camera = Frame {
+            file_path: None,
+            intrinsics: Intrinsics::from_fov(32, 32, 49.13),
+            camera_to_world: crate::camera::look_at(
+                DVec3::new(0.0, -8.0, 6.0),
+                DVec3::ZERO,
+                DVec3::Z,
+            )
+            .unwrap(),
+        };
+        let blank = RgbImage32 {
+            w: 16,
+            h: 16,
+            data: vec![0.0; 16 * 16 * 3],
+        };
+        let background = InputView::new(&camera, &blank);
+        let prepared = model.prepare(&[], &vec![0.0; cfg.slot_dim]).unwrap();
+        let mut data = FastRenderer::new(&model, &prepared, &[])
+            .unwrap()
+            .render(&background.origins, &background.dirs, None, None)
+            .unwrap()
+            .rgb;
+        for y in 4..8 {
+            for x in 9..13 {
+                data[3 * (y * 16 + x)..3 * (y * 16 + x) + 3].copy_from_slice(&[0.9, 0.1, 0.1]);
+            }
+        }
+        let img = RgbImage32 { w: 16, h: 16, data };
+        let view = InputView::new(&camera, &img);
+        let objects = view.object_pixels(&model).unwrap();
+        for y in 0..16 {
+            for x in 0..16 {
+                let inside = (4..8).contains(&y) && (9..13).contains(&x);
+                assert_eq!(objects[y * 16 + x], f32::from(u8::from(inside)), "({x}, {y})");
+            }
+        }
     }
 }

@@ -124,6 +124,16 @@ pub struct Config {
     /// (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub frame_ground_contact: bool,
+    /// With `attention_frames` and a static background (scenes that share one background, a
+    /// street): each foreground slot is placed from the part of its attention on the pixels
+    /// the background does not draw — object proposals against the background's render at the
+    /// input camera (`proposals.rs`) — rather than from all of it, where that part is at least
+    /// `frames::MIN_OBJECT_SHARE` of it. Slot attention spreads beyond a small object, so its
+    /// centroid and lower edge read off the object; within the object's pixels they are the
+    /// object's. In training the input view's proposals are the pixels (so it needs
+    /// `--proposals`). Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub frames_from_residual: bool,
     /// A foreground slot does not draw on a ray that starts more than this (world units) past
     /// its frame origin (the origin lies that far behind the camera, along the ray), and the
     /// background's ordering is not measured from it: an object within this of its frame
@@ -321,6 +331,7 @@ impl Config {
             background_from_nearest_slot: false,
             frame_ground_height: 0.0,
             frame_ground_contact: false,
+            frames_from_residual: false,
             cull_behind: 0.0,
             shadow_head: false,
             shadow_light: None,
@@ -487,6 +498,9 @@ impl Config {
         if !(self.cull_behind.is_finite() && self.cull_behind >= 0.0) {
             bail!("model config: `cull_behind` must be a non-negative number");
         }
+        if self.frames_from_residual && !(self.attention_frames && self.static_background) {
+            bail!("model config: `frames_from_residual` places attention frames (`attention_frames`) against a static background (`static_background`): set both");
+        }
         if self.frame_ground_contact && self.frame_ground_height > 0.0 {
             bail!("model config: `frame_ground_contact` and `frame_ground_height` both place frames on the ground: set one");
         }
@@ -562,6 +576,16 @@ impl Config {
     }
 
     /// Layer widths of a light-field MLP, input first.
+    /// The heads' MLPs: (hidden width, hidden layers).
+    pub fn head_shape(&self) -> (usize, usize) {
+        (self.head_hidden, self.head_hidden_layers)
+    }
+
+    /// The compositor's V: (hidden width, hidden layers).
+    pub fn compositor_shape(&self) -> (usize, usize) {
+        (self.compositor_hidden, self.compositor_hidden_layers)
+    }
+
     pub fn lfn_dims(&self) -> Vec<usize> {
         let mut dims = vec![self.ray_input_dim()];
         dims.extend(std::iter::repeat_n(self.lfn_hidden, self.lfn_hidden_layers));

@@ -21,6 +21,12 @@
 //!   background hypernetwork's input weights zeroed as above, so the renders start exactly as
 //!   the zero-latent model's and the gradient of those input weights is the hidden layer's times
 //!   the reader's latent, which differs from image to image.
+//! - wider `lfn_features`: the fields' new features are fresh, and the heads read them with zero
+//!   weights;
+//! - wider or deeper heads and compositor (`head_hidden`, `head_hidden_layers`,
+//!   `compositor_hidden`, `compositor_hidden_layers`): new hidden units as above, new hidden
+//!   layers inserted before the output layer as the identity on the old units (exact after a
+//!   ReLU); see [`MlpGrowth`];
 //! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
 //!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
 //!   growth that changes renders, by that much; see `heads.rs`).
@@ -34,7 +40,7 @@ use super::config::Config;
 use super::hypernet::BackgroundField;
 use super::init::tensor_seed;
 use super::ColfNet;
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use candle_core::{DType, Device, Tensor};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
@@ -123,6 +129,23 @@ fn grow_rest(
     for (key, from, to) in [
         ("hypernet_hidden", old.hypernet_hidden, cfg.hypernet_hidden),
         ("lfn_hidden", old.lfn_hidden, cfg.lfn_hidden),
+        ("lfn_features", old.lfn_features, cfg.lfn_features),
+        ("head_hidden", old.head_hidden, cfg.head_hidden),
+        (
+            "head_hidden_layers",
+            old.head_hidden_layers,
+            cfg.head_hidden_layers,
+        ),
+        (
+            "compositor_hidden",
+            old.compositor_hidden,
+            cfg.compositor_hidden,
+        ),
+        (
+            "compositor_hidden_layers",
+            old.compositor_hidden_layers,
+            cfg.compositor_hidden_layers,
+        ),
     ] {
         if to < from {
             bail!("{name}: `{key}` can grow ({from} → more), not shrink");
@@ -133,11 +156,11 @@ fn grow_rest(
             widen_hypernet(&mut out, prefix, cfg.hypernet_hidden, seed)?;
         }
     }
-    if cfg.lfn_hidden > old.lfn_hidden {
+    if cfg.lfn_dims() != old.lfn_dims() {
         if cfg.lfn_hidden_layers != old.lfn_hidden_layers
             || cfg.ray_fourier_freqs != old.ray_fourier_freqs
         {
-            bail!("{name}: `lfn_hidden` grows only with the same `lfn_hidden_layers` and `ray_fourier_freqs`");
+            bail!("{name}: `lfn_hidden` and `lfn_features` grow only with the same `lfn_hidden_layers` and `ray_fourier_freqs`");
         }
         let grow = LayerGrowth {
             old_dims: old.lfn_dims(),
@@ -148,8 +171,183 @@ fn grow_rest(
             grow.hypernet(&mut out, prefix)?;
         }
         grow.static_field(&mut out, "background_field.")?;
+        if cfg.lfn_features > old.lfn_features {
+            // The shadow head reads the features: zero weights on the new ones.
+            grow_columns(&mut out, "heads.shadow.weight", cfg.lfn_features)?;
+        }
+    }
+    // The heads read the light fields' features; the compositor's V reads 2 numbers a slot.
+    let features = (old.lfn_features, cfg.lfn_features);
+    for (prefix, input, shapes) in [
+        (
+            "heads.color.",
+            features,
+            (old.head_shape(), cfg.head_shape()),
+        ),
+        (
+            "heads.ordering.",
+            features,
+            (old.head_shape(), cfg.head_shape()),
+        ),
+        (
+            "compositor.v.",
+            (2, 2),
+            (old.compositor_shape(), cfg.compositor_shape()),
+        ),
+    ] {
+        let ((old_hidden, old_layers), (hidden, layers)) = shapes;
+        let growth = MlpGrowth {
+            prefix,
+            input,
+            hidden: (old_hidden, hidden),
+            hidden_layers: (old_layers, layers),
+            seed,
+        };
+        if !growth.is_identity() {
+            growth
+                .apply(&mut out)
+                .with_context(|| format!("{name}: growing `{prefix}`"))?;
+        }
     }
     Ok(out)
+}
+
+/// `{key}` [rows, C] widened to `columns` with zero columns: new inputs have no effect yet.
+fn grow_columns(tensors: &mut BTreeMap<String, Tensor>, key: &str, columns: usize) -> Result<()> {
+    let Some(t) = tensors.get(key).cloned() else {
+        return Ok(());
+    };
+    let (rows, old) = t.dims2()?;
+    let zeros = Tensor::zeros((rows, columns - old), DType::F32, &Device::Cpu)?;
+    tensors.insert(
+        key.to_string(),
+        Tensor::cat(&[&t, &zeros], 1)?.contiguous()?,
+    );
+    Ok(())
+}
+
+/// Growing an [`Mlp`](super::layers::Mlp) of ReLU layers (`{prefix}layers.{i}.weight` [out,
+/// in], `.bias` [out]) while it computes the same function: `(old, new)` input width, hidden
+/// width and number of hidden layers.
+/// - Wider input: zero weights on the new inputs (they have no effect yet).
+/// - Wider hidden layers: the new units get fresh incoming weights and biases, and zero
+///   weights into every old unit and into the output.
+/// - More hidden layers: inserted before the output layer as the identity on the old units
+///   (exact after a ReLU, whose outputs are ≥ 0), their new units fresh, as above.
+struct MlpGrowth<'a> {
+    prefix: &'a str,
+    input: (usize, usize),
+    hidden: (usize, usize),
+    hidden_layers: (usize, usize),
+    seed: u64,
+}
+
+impl MlpGrowth<'_> {
+    fn is_identity(&self) -> bool {
+        self.input.0 == self.input.1
+            && self.hidden.0 == self.hidden.1
+            && self.hidden_layers.0 == self.hidden_layers.1
+    }
+
+    fn apply(&self, tensors: &mut BTreeMap<String, Tensor>) -> Result<()> {
+        let (old_layers, new_layers) = self.hidden_layers;
+        if old_layers == 0 && new_layers > 0 {
+            bail!("a linear output layer cannot gain hidden layers while keeping its function");
+        }
+        let key = |i: usize, part: &str| format!("{}layers.{i}.{part}", self.prefix);
+        if !tensors.contains_key(&key(0, "weight")) {
+            return Ok(());
+        }
+        // The output layer moves to its new index; read it before anything is overwritten.
+        let output_weight = tensors
+            .remove(&key(old_layers, "weight"))
+            .with_context(|| format!("no tensor `{}`", key(old_layers, "weight")))?;
+        let output_bias = tensors.remove(&key(old_layers, "bias"));
+        let width = |i: usize, new: bool| match (i, new) {
+            (0, false) => self.input.0,
+            (0, true) => self.input.1,
+            (_, false) => self.hidden.0,
+            (_, true) => self.hidden.1,
+        };
+        for i in 0..old_layers {
+            let (weight_key, bias_key) = (key(i, "weight"), key(i, "bias"));
+            let weight = tensors[&weight_key].clone();
+            let bias = tensors[&bias_key].clone();
+            let (weight, bias) = self.widen(&weight, &bias, width(i, true), &weight_key)?;
+            tensors.insert(weight_key, weight);
+            tensors.insert(bias_key, bias);
+        }
+        // Fresh units in the inserted layers are drawn like the last old hidden layer's.
+        let last_weight = tensors[&key(old_layers - 1, "weight")].clone();
+        let last_bias = tensors[&key(old_layers - 1, "bias")].clone();
+        let (old_hidden, hidden) = self.hidden;
+        for i in old_layers..new_layers {
+            let (weight_key, bias_key) = (key(i, "weight"), key(i, "bias"));
+            let identity = Tensor::eye(old_hidden, DType::F32, &Device::Cpu)?;
+            let identity_bias = Tensor::zeros(old_hidden, DType::F32, &Device::Cpu)?;
+            let (mut weight, mut bias) = (identity, identity_bias);
+            if hidden > old_hidden {
+                // Widen the identity like an old layer: same rule for its new units.
+                let rows = fresh_like(
+                    &last_weight,
+                    &[hidden - old_hidden, hidden],
+                    self.seed,
+                    &weight_key,
+                )?;
+                let zeros =
+                    Tensor::zeros((old_hidden, hidden - old_hidden), DType::F32, &Device::Cpu)?;
+                weight = Tensor::cat(&[&Tensor::cat(&[&weight, &zeros], 1)?, &rows], 0)?;
+                let fresh = fresh_like(&last_bias, &[hidden - old_hidden], self.seed, &bias_key)?;
+                bias = Tensor::cat(&[&bias, &fresh], 0)?;
+            }
+            tensors.insert(weight_key, weight.contiguous()?);
+            tensors.insert(bias_key, bias);
+        }
+        // The output layer reads only the old units: zero weights on the new ones.
+        let (outputs, old_in) = output_weight.dims2()?;
+        let new_in = width(new_layers, true);
+        let mut weight = output_weight;
+        if new_in > old_in {
+            let zeros = Tensor::zeros((outputs, new_in - old_in), DType::F32, &Device::Cpu)?;
+            weight = Tensor::cat(&[&weight, &zeros], 1)?.contiguous()?;
+        }
+        tensors.insert(key(new_layers, "weight"), weight);
+        if let Some(bias) = output_bias {
+            tensors.insert(key(new_layers, "bias"), bias);
+        }
+        Ok(())
+    }
+
+    /// A hidden layer's weight [out, in] and bias [out] grown to `new_in` inputs (zero columns)
+    /// and the new hidden width (fresh rows and bias entries, drawn like their neighbours).
+    fn widen(
+        &self,
+        weight: &Tensor,
+        bias: &Tensor,
+        new_in: usize,
+        name: &str,
+    ) -> Result<(Tensor, Tensor)> {
+        let (old_out, old_in) = weight.dims2()?;
+        let new_out = self.hidden.1;
+        let mut grown = weight.clone();
+        if new_in > old_in {
+            let zeros = Tensor::zeros((old_out, new_in - old_in), DType::F32, &Device::Cpu)?;
+            grown = Tensor::cat(&[&grown, &zeros], 1)?;
+        }
+        let mut bias = bias.clone();
+        if new_out > old_out {
+            let rows = fresh_like(weight, &[new_out - old_out, new_in], self.seed, name)?;
+            grown = Tensor::cat(&[&grown, &rows], 0)?;
+            let fresh = fresh_like(
+                &bias,
+                &[new_out - old_out],
+                self.seed,
+                &format!("{name}:bias"),
+            )?;
+            bias = Tensor::cat(&[&bias, &fresh], 0)?;
+        }
+        Ok((grown.contiguous()?, bias))
+    }
 }
 
 /// A freshly initialised model's (`cfg`, `seed`) tensors whose names start with one of

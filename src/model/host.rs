@@ -358,6 +358,21 @@ impl Colf {
         num_slots: usize,
         seed: u64,
     ) -> Result<Encoded> {
+        self.encode_within(image_rgb, h, w, num_slots, seed, None)
+    }
+
+    /// As [`Colf::encode`]; with `objects` (h×w, 1 on object pixels and 0 elsewhere) the
+    /// foreground slots are placed from the part of their attention on those pixels
+    /// (`Config::frames_from_residual`, `SlotOutput::attend_within`).
+    pub fn encode_within(
+        &self,
+        image_rgb: &[f32],
+        h: usize,
+        w: usize,
+        num_slots: usize,
+        seed: u64,
+        objects: Option<&[f32]>,
+    ) -> Result<Encoded> {
         if h == 0 || w == 0 || image_rgb.len() != h * w * 3 {
             bail!(
                 "image buffer of {} values does not hold a {w}×{h} RGB image",
@@ -366,7 +381,17 @@ impl Colf {
         }
         let image = encoder::image_tensor(&self.model.cfg, image_rgb, h, w, &self.device)?;
         let mut rng = StdRng::seed_from_u64(seed);
-        let out = self.model.encode(&image, num_slots, &mut rng)?;
+        let mut out = self.model.encode(&image, num_slots, &mut rng)?;
+        if let Some(objects) = objects {
+            if objects.len() != h * w {
+                bail!("{} object pixels for a {w}×{h} image", objects.len());
+            }
+            let tokens = out.log_attention.dim(1)?;
+            let grid = (tokens as f64).sqrt().round() as usize;
+            let shares = super::slot_attention::token_shares(objects, h, w, grid);
+            let within = Tensor::from_vec(shares, (1, tokens), &self.device)?;
+            out.attend_within(&within, super::frames::MIN_OBJECT_SHARE)?;
+        }
         let fg = out.fg.squeeze(0)?;
         let fg_latents = if num_slots == 0 {
             Vec::new()

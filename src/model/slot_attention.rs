@@ -152,6 +152,51 @@ fn where_slots_attend(weights: &Tensor) -> Result<(Tensor, Tensor)> {
     Ok((centroid, bottom.squeeze(2)?.contiguous()?))
 }
 
+impl SlotOutput {
+    /// Places the foreground slots (`fg_centroid`, `fg_bottom`) from the part of their last
+    /// round's attention on the tokens `within` [B, N] weighs (≥ 0: e.g. the share of each
+    /// token's pixels that are object candidates), each slot's attention times `within`
+    /// normalised over the tokens; a slot with less than `min_share` of its attention there
+    /// keeps its placement.
+    pub fn attend_within(&mut self, within: &Tensor, min_share: f64) -> Result<()> {
+        let k = self.fg_centroid.dim(1)?;
+        if k == 0 {
+            return Ok(());
+        }
+        let attention = self.log_attention.detach().exp()?.narrow(2, 1, k)?; // [B, N, K]
+        let inside = attention.broadcast_mul(&within.unsqueeze(2)?)?;
+        let mass = inside.sum_keepdim(1)?; // [B, 1, K]
+        let weights = inside.broadcast_div(&(&mass + 1e-20)?)?;
+        let (centroid, bottom) = where_slots_attend(&weights)?;
+        let keep = mass
+            .lt(&(attention.sum_keepdim(1)? * min_share)?)?
+            .squeeze(1)?; // [B, K]
+        let keep_xy = keep.unsqueeze(2)?.broadcast_as(centroid.shape())?;
+        self.fg_centroid = keep_xy.where_cond(&self.fg_centroid, &centroid)?;
+        self.fg_bottom = keep.where_cond(&self.fg_bottom, &bottom)?;
+        Ok(())
+    }
+}
+
+/// The share of each cell of a g×g grid (row-major) covered by `pixels` (h×w, row-major, 1 on
+/// the pixels to keep and 0 elsewhere): a box filter from the image to the token grid.
+pub fn token_shares(pixels: &[f32], h: usize, w: usize, g: usize) -> Vec<f32> {
+    let mut sum = vec![0f32; g * g];
+    let mut count = vec![0f32; g * g];
+    for j in 0..h {
+        let row = (j * g / h.max(1)).min(g - 1);
+        for i in 0..w {
+            let col = (i * g / w.max(1)).min(g - 1);
+            sum[row * g + col] += pixels[j * w + i];
+            count[row * g + col] += 1.0;
+        }
+    }
+    sum.iter()
+        .zip(&count)
+        .map(|(s, c)| if *c > 0.0 { s / c } else { 0.0 })
+        .collect()
+}
+
 /// The slot encoder.
 #[derive(Clone, Debug)]
 pub struct SlotAttention {
@@ -307,5 +352,74 @@ mod tests {
         assert!((bottom[0][0] - 0.75).abs() < 0.01, "{}", bottom[0][0]);
         assert!((centroid[0][1][0] - 7.5 / 8.0).abs() < 1e-6);
         assert!((bottom[0][1] - 7.5 / 8.0).abs() < 1e-3, "{}", bottom[0][1]);
+    }
+
+    /// A 4×4 grid, background and two slots. Slot 0 spreads over the top half and a car in the
+    /// lower-left quarter; placed from the object pixels, it attends at the car's centre and
+    /// reaches its lower edge. Slot 1, spread evenly, has a quarter of its attention on the car:
+    /// it moves there too, unless the bar is higher.
+    #[test]
+    fn slots_are_placed_from_their_attention_on_object_pixels() {
+        use candle_core::DType;
+        let dev = candle_core::Device::Cpu;
+        let (g, n) = (4usize, 16usize);
+        // Softmax over (background, slot 0, slot 1) per token.
+        let mut attention = vec![0f32; n * 3];
+        for t in 0..n {
+            let (row, col) = (t / g, t % g);
+            let share = if row < 2 || col < 2 {
+                [0.2, 0.7, 0.1]
+            } else {
+                [0.9, 0.0, 0.1]
+            };
+            attention[t * 3..t * 3 + 3].copy_from_slice(&share);
+        }
+        let log_attention = Tensor::from_vec(attention.clone(), (1, n, 3), &dev)
+            .unwrap()
+            .clamp(1e-12, 1.0)
+            .unwrap()
+            .log()
+            .unwrap();
+        let mut out = SlotOutput {
+            fg: Tensor::zeros((1, 2, 4), DType::F32, &dev).unwrap(),
+            bg: Tensor::zeros((1, 4), DType::F32, &dev).unwrap(),
+            fg_mass: Tensor::zeros((1, 2), DType::F32, &dev).unwrap(),
+            bg_mass: Tensor::zeros(1, DType::F32, &dev).unwrap(),
+            fg_centroid: Tensor::new(&[[[0.5f32, 0.4], [0.5, 0.5]]], &dev).unwrap(),
+            fg_bottom: Tensor::new(&[[0.9f32, 0.9]], &dev).unwrap(),
+            log_attention,
+        };
+        // The car: the lower-left quarter of an 8×8 image (rows 4–7, columns 0–3).
+        let mut pixels = vec![0f32; 64];
+        for j in 4..8 {
+            for i in 0..4 {
+                pixels[j * 8 + i] = 1.0;
+            }
+        }
+        let shares = token_shares(&pixels, 8, 8, g);
+        assert_eq!(shares[2 * g], 1.0);
+        assert_eq!(shares[0], 0.0);
+        let within = Tensor::from_vec(shares, (1, n), &dev).unwrap();
+        out.attend_within(&within, 0.05).unwrap();
+        let centroid = out.fg_centroid.to_vec3::<f32>().unwrap();
+        let bottom = out.fg_bottom.to_vec2::<f32>().unwrap();
+        // Slot 0: the car's tokens are rows 2–3, columns 0–1: centre (0.25, 0.75).
+        assert!((centroid[0][0][0] - 0.25).abs() < 1e-5, "{:?}", centroid);
+        assert!((centroid[0][0][1] - 0.75).abs() < 1e-5, "{:?}", centroid);
+        // Its lower edge: rows at y = 0.625 and 0.875, mean 0.75 plus √3 σ (σ = 0.125).
+        assert!(
+            (bottom[0][0] - (0.75 + 0.125 * 3f32.sqrt())).abs() < 1e-5,
+            "{:?}",
+            bottom
+        );
+        // Slot 1 attends everywhere evenly: a quarter of its attention is on the car, so it
+        // moves there too; with a higher bar it keeps its placement.
+        assert!((centroid[0][1][1] - 0.75).abs() < 1e-5, "{:?}", centroid);
+        let mut kept = out.clone();
+        kept.fg_centroid = Tensor::new(&[[[0.5f32, 0.4], [0.5, 0.5]]], &dev).unwrap();
+        kept.attend_within(&within, 0.3).unwrap();
+        let centroid = kept.fg_centroid.to_vec3::<f32>().unwrap();
+        assert_eq!(centroid[0][1], [0.5, 0.5]);
+        assert!((centroid[0][0][1] - 0.75).abs() < 1e-5);
     }
 }

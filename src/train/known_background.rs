@@ -28,7 +28,6 @@ pub const RENDER_THRESHOLD: f32 = 0.1;
 pub struct KnownBackground {
     model: Colf,
     scene: PreparedScene,
-    params: ProposalParams,
 }
 
 impl KnownBackground {
@@ -49,15 +48,7 @@ impl KnownBackground {
             model: model.identity()?,
         };
         let scene = PreparedScene::new(&model, &codes, &shown.to_string())?;
-        let params = ProposalParams {
-            threshold: RENDER_THRESHOLD,
-            ..ProposalParams::default()
-        };
-        Ok(KnownBackground {
-            model,
-            scene,
-            params,
-        })
+        Ok(KnownBackground { model, scene })
     }
 
     /// The background as `frame`'s camera sees it: RGB, row-major.
@@ -76,8 +67,18 @@ impl KnownBackground {
                 image.h
             );
         }
-        propose_against(image, &self.render(frame)?, RENDER_HUE, &self.params)
+        proposals_against_render(image, &self.render(frame)?)
     }
+}
+
+/// The object proposals of `image` against `render`, a render of its background alone (RGB,
+/// row-major, the image's size), with the settings `--proposals-against` uses.
+pub fn proposals_against_render(image: &RgbImage32, render: &[f32]) -> Result<Vec<u8>> {
+    let params = ProposalParams {
+        threshold: RENDER_THRESHOLD,
+        ..ProposalParams::default()
+    };
+    propose_against(image, render, RENDER_HUE, &params)
 }
 
 /// A view's object proposals: against `known`'s background where there is one, else against
