@@ -436,9 +436,10 @@ PAPER_INIT ?= models/default.safetensors
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
   --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3 \
   --set hypernet_hidden=64
-# p6: 30,000 steps at 64² (run p's p6, from a fresh decoder's model-both stage, was level on
-# held-out scenes from about step 20,000 at 5e-5); p7: the paper's 60,000 at 128² on the same mix
-# rendered at 128². Scored at the end on 100 held-out 128² scenes of each look
+# p6: 12,000 steps at 64², for the new units to learn at the resolution the model was trained
+# at (run p's p6, a fresh decoder after model-both, was level on held-out scenes from about step
+# 20,000 at 5e-5); p7: the paper's 60,000 at 128² on the same mix rendered at 128², where the
+# detail the wider decoder is for shows. Scored at the end on 100 held-out 128² scenes of each look
 # ($(PAPER_RUN)/p7-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
 PAPER_LATE := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
@@ -451,8 +452,8 @@ model-paper: build
 	$(MAKE) data-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both
 	test -f $(PAPER_RUN)/p7.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_RUN)/both/data/mix \
-	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 30000 \
-	  --lr 5e-5 --warmup 200 --decay-from 20000 --final-lr 1e-5 --seed 71 \
+	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 12000 \
+	  --lr 5e-5 --warmup 200 --decay-from 8000 --final-lr 1e-5 --seed 71 \
 	  $(call resume_or_init,$(PAPER_RUN)/p6.safetensors,$(PAPER_INIT) $(PAPER_DECODER) $(PAPER_REACH))
 	@mkdir -p $(PAPER_128)
 	$(call unlabelled_set,$(PAPER_128)/blender,600,--engine blender --size 128)

@@ -176,6 +176,16 @@ fn zero_background_tiny() -> Config {
     }
 }
 
+/// Values drawn from N(0, std²) in `shape`, seeded (candle's `randn` is not).
+fn seeded_normal(std: f32, shape: &[usize], seed: u64) -> Tensor {
+    use rand_distr::{Distribution, Normal};
+    let normal = Normal::new(0f32, std).unwrap();
+    let mut rng = StdRng::seed_from_u64(seed);
+    let n = shape.iter().product();
+    let values: Vec<f32> = (0..n).map(|_| normal.sample(&mut rng)).collect();
+    Tensor::from_vec(values, shape, &Device::Cpu).unwrap()
+}
+
 fn abs_sum(t: &Tensor) -> f32 {
     t.abs()
         .unwrap()
@@ -412,7 +422,7 @@ fn a_background_reader_grows_on_a_fixed_background_and_follows_the_image() {
     let stepped = reading
         .with_tensor(
             "hypernet_bg.fc1.weight",
-            Tensor::randn(0f32, 1e-3, fc1.shape(), &Device::Cpu).unwrap(),
+            seeded_normal(1e-3, fc1.dims(), 11),
         )
         .unwrap();
     let grads = assert_gradients_reach_every_parameter(stepped);
@@ -719,11 +729,12 @@ fn reconfigured_keeps_weights_and_refuses_shape_changes() {
         Colf::from_bytes(&bytes, "b").unwrap().identity().unwrap(),
         id
     );
-    let more_features = cfg
-        .with_overrides(&[format!("lfn_features={}", 2 * cfg.lfn_features)])
+    // A wider slot latent changes what every hypernetwork reads: no growth keeps that.
+    let wider_slots = cfg
+        .with_overrides(&[format!("slot_dim={}", 2 * cfg.slot_dim)])
         .unwrap();
-    let Err(err) = a.reconfigured(&more_features, 0, "m.safetensors") else {
-        panic!("more light-field features were accepted");
+    let Err(err) = a.reconfigured(&wider_slots, 0, "m.safetensors") else {
+        panic!("a wider slot latent was accepted");
     };
     let err = err.to_string();
     assert!(err.starts_with("m.safetensors: "), "{err}");

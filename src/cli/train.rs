@@ -169,9 +169,11 @@ pub struct RunArgs {
     /// Override a field of the model's config, KEY=VALUE (repeatable; keys as in
     /// docs/model.md, e.g. `--set ray_fourier_freqs=6`). With --init, only settings that keep
     /// every tensor's shape (e.g. `--set default_slots=10`) or that grow the model while keeping
-    /// what it computes (`--set static_background=true` on a zero-background model, a larger
-    /// `--set hypernet_hidden=N`, `--set zero_background=false` for a background that reads
-    /// the image; new weights drawn from --seed); ignored with --resume.
+    /// what it computes (`--set static_background=true` on a zero-background model, larger
+    /// `hypernet_hidden`, `lfn_hidden`, `lfn_features`, `head_hidden`, `head_hidden_layers`,
+    /// `compositor_hidden` or `compositor_hidden_layers` — e.g. the small decoder grown to the
+    /// paper's —, `--set zero_background=false` for a background that reads the image; new
+    /// weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,
 

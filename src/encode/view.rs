@@ -228,7 +228,11 @@ mod tests {
         for y in 0..16 {
             for x in 0..16 {
                 let inside = (4..8).contains(&y) && (9..13).contains(&x);
-                assert_eq!(objects[y * 16 + x], f32::from(u8::from(inside)), "({x}, {y})");
+                assert_eq!(
+                    objects[y * 16 + x],
+                    f32::from(u8::from(inside)),
+                    "({x}, {y})"
+                );
             }
         }
     }
