@@ -130,8 +130,9 @@ pub struct Config {
     /// input camera (`proposals.rs`) — rather than from all of it, where that part is at least
     /// `frames::MIN_OBJECT_SHARE` of it. Slot attention spreads beyond a small object, so its
     /// centroid and lower edge read off the object; within the object's pixels they are the
-    /// object's. In training the input view's proposals are the pixels (so it needs
-    /// `--proposals`). Absent in older files (= false).
+    /// object's. In training the input view's object ids are the pixels: its proposals with
+    /// `--proposals`, else its mask file (a run with neither is refused). Absent in older
+    /// files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub frames_from_residual: bool,
     /// A foreground slot does not draw on a ray that starts more than this (world units) past

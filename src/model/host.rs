@@ -383,14 +383,7 @@ impl Colf {
         let mut rng = StdRng::seed_from_u64(seed);
         let mut out = self.model.encode(&image, num_slots, &mut rng)?;
         if let Some(objects) = objects {
-            if objects.len() != h * w {
-                bail!("{} object pixels for a {w}×{h} image", objects.len());
-            }
-            let tokens = out.log_attention.dim(1)?;
-            let grid = (tokens as f64).sqrt().round() as usize;
-            let shares = super::slot_attention::token_shares(objects, h, w, grid);
-            let within = Tensor::from_vec(shares, (1, tokens), &self.device)?;
-            out.attend_within(&within, super::frames::MIN_OBJECT_SHARE)?;
+            out.attend_within_pixels(&[(objects, h, w)], super::frames::MIN_OBJECT_SHARE)?;
         }
         let fg = out.fg.squeeze(0)?;
         let fg_latents = if num_slots == 0 {

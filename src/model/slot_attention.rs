@@ -178,6 +178,30 @@ impl SlotOutput {
     }
 }
 
+impl SlotOutput {
+    /// [`SlotOutput::attend_within`] the object pixels of each image: (pixels, h, w), row-major,
+    /// 1 on object pixels and 0 elsewhere, one per image of the batch; the share of each
+    /// token's pixels that are objects weighs it.
+    pub fn attend_within_pixels(
+        &mut self,
+        objects: &[(&[f32], usize, usize)],
+        min_share: f64,
+    ) -> Result<()> {
+        let tokens = self.log_attention.dim(1)?;
+        let grid = (tokens as f64).sqrt().round() as usize;
+        let mut shares = Vec::with_capacity(objects.len() * tokens);
+        for &(pixels, h, w) in objects {
+            if pixels.len() != h * w {
+                candle_core::bail!("{} object pixels for a {w}×{h} image", pixels.len());
+            }
+            shares.extend(token_shares(pixels, h, w, grid));
+        }
+        let within =
+            Tensor::from_vec(shares, (objects.len(), tokens), self.log_attention.device())?;
+        self.attend_within(&within, min_share)
+    }
+}
+
 /// The share of each cell of a g×g grid (row-major) covered by `pixels` (h×w, row-major, 1 on
 /// the pixels to keep and 0 elsewhere): a box filter from the image to the token grid.
 pub fn token_shares(pixels: &[f32], h: usize, w: usize, g: usize) -> Vec<f32> {

@@ -489,23 +489,22 @@ impl Trainer {
         let mut encoded = model.encode(&Tensor::cat(&images, 0)?, self.num_slots, rng)?;
         if cfg.frames_from_residual {
             // The input views' object proposals (against the known background) place the slots.
-            let tokens = encoded.log_attention.dim(1)?;
-            let grid = (tokens as f64).sqrt().round() as usize;
-            let mut shares = Vec::with_capacity(samples.len() * tokens);
-            for s in samples {
-                let Some(ids) = &s.input_mask else {
-                    bail!("`frames_from_residual` places slots from the input view's object proposals: train with --proposals");
-                };
-                let objects: Vec<f32> = ids
-                    .iter()
-                    .map(|&id| f32::from(u8::from(is_instance(id))))
-                    .collect();
-                shares.extend(crate::model::slot_attention::token_shares(
-                    &objects, s.input_h, s.input_w, grid,
-                ));
-            }
-            let within = Tensor::from_vec(shares, (samples.len(), tokens), dev)?;
-            encoded.attend_within(&within, crate::model::frames::MIN_OBJECT_SHARE)?;
+            let objects = samples
+                .iter()
+                .map(|s| {
+                    let Some(ids) = &s.input_mask else {
+                        bail!("`frames_from_residual` places slots from the input view's object proposals: train with --proposals");
+                    };
+                    let pixels: Vec<f32> = ids
+                        .iter()
+                        .map(|&id| f32::from(u8::from(is_instance(id))))
+                        .collect();
+                    Ok((pixels, s.input_h, s.input_w))
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let objects: Vec<(&[f32], usize, usize)> =
+                objects.iter().map(|(p, h, w)| (&p[..], *h, *w)).collect();
+            encoded.attend_within_pixels(&objects, crate::model::frames::MIN_OBJECT_SHARE)?;
         }
         let fields = model.prepare(&encoded.fg, &encoded.bg)?;
         let centroids = encoded.fg_centroid.to_vec3::<f32>()?;
