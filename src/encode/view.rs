@@ -73,10 +73,7 @@ impl<'a> InputView<'a> {
         )?;
         let ids =
             crate::train::known_background::proposals_against_render(self.image, &render.rgb)?;
-        let objects = ids
-            .iter()
-            .map(|&id| f32::from(u8::from(crate::proposals::is_instance(id))))
-            .collect();
+        let objects = crate::proposals::object_pixels(&ids);
         Ok(self.objects.get_or_init(|| objects))
     }
 

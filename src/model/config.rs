@@ -576,7 +576,6 @@ impl Config {
         6 * (1 + 2 * self.ray_fourier_freqs)
     }
 
-    /// Layer widths of a light-field MLP, input first.
     /// The heads' MLPs: (hidden width, hidden layers).
     pub fn head_shape(&self) -> (usize, usize) {
         (self.head_hidden, self.head_hidden_layers)
@@ -587,6 +586,7 @@ impl Config {
         (self.compositor_hidden, self.compositor_hidden_layers)
     }
 
+    /// Layer widths of a light-field MLP, input first.
     pub fn lfn_dims(&self) -> Vec<usize> {
         let mut dims = vec![self.ray_input_dim()];
         dims.extend(std::iter::repeat_n(self.lfn_hidden, self.lfn_hidden_layers));

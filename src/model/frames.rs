@@ -13,13 +13,13 @@
 //! before, and they are stored in the codes file like any other frame.
 
 use super::config::Config;
+use crate::camera::Frame;
+use glam::{DMat4, DVec3};
 
 /// With `Config::frames_from_residual`, the least share of a slot's attention on the object
 /// pixels for it to be placed from them alone (a slot that attends to background places as
 /// before).
 pub const MIN_OBJECT_SHARE: f64 = 0.05;
-use crate::camera::Frame;
-use glam::{DMat4, DVec3};
 
 /// The frames of foreground slots attending at `centroids` ((x, y) in [0, 1] of the image
 /// `camera` saw), one per slot; `bottoms` (y in [0, 1], one per slot) is how far down each

@@ -119,12 +119,18 @@ pub struct SlotOutput {
     pub log_attention: Tensor,
 }
 
-/// Centres of the tokens of a square g×g grid (row-major), as (x, y) in [0, 1] [N, 2].
-fn token_positions(n_tokens: usize, device: &candle_core::Device) -> Result<Tensor> {
+/// The side g of a square grid of `n_tokens` tokens.
+fn grid_side(n_tokens: usize) -> Result<usize> {
     let g = (n_tokens as f64).sqrt().round() as usize;
     if g * g != n_tokens {
         candle_core::bail!("{n_tokens} tokens do not form a square grid");
     }
+    Ok(g)
+}
+
+/// Centres of the tokens of a square g×g grid (row-major), as (x, y) in [0, 1] [N, 2].
+fn token_positions(n_tokens: usize, device: &candle_core::Device) -> Result<Tensor> {
+    let g = grid_side(n_tokens)?;
     let xy: Vec<f32> = (0..n_tokens)
         .flat_map(|t| {
             let (x, y) = (t % g, t / g);
@@ -176,9 +182,7 @@ impl SlotOutput {
         self.fg_bottom = keep.where_cond(&self.fg_bottom, &bottom)?;
         Ok(())
     }
-}
 
-impl SlotOutput {
     /// [`SlotOutput::attend_within`] the object pixels of each image: (pixels, h, w), row-major,
     /// 1 on object pixels and 0 elsewhere, one per image of the batch; the share of each
     /// token's pixels that are objects weighs it.
@@ -188,7 +192,7 @@ impl SlotOutput {
         min_share: f64,
     ) -> Result<()> {
         let tokens = self.log_attention.dim(1)?;
-        let grid = (tokens as f64).sqrt().round() as usize;
+        let grid = grid_side(tokens)?;
         let mut shares = Vec::with_capacity(objects.len() * tokens);
         for &(pixels, h, w) in objects {
             if pixels.len() != h * w {

@@ -495,10 +495,7 @@ impl Trainer {
                     let Some(ids) = &s.input_mask else {
                         bail!("`frames_from_residual` places slots from the input view's object proposals: train with --proposals");
                     };
-                    let pixels: Vec<f32> = ids
-                        .iter()
-                        .map(|&id| f32::from(u8::from(is_instance(id))))
-                        .collect();
+                    let pixels = crate::proposals::object_pixels(ids);
                     Ok((pixels, s.input_h, s.input_w))
                 })
                 .collect::<Result<Vec<_>>>()?;
