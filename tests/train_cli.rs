@@ -807,3 +807,75 @@ fn a_run_from_a_model_with_no_records_says_its_start_is_unrecorded() {
     assert!(described["masks_used"].is_null());
     assert_eq!(described["unrecorded_init"], start_id);
 }
+
+/// `--context-views`: every scene encodes those views together (the City-Block recipe); the run
+/// records them, evaluates from them, and bad lists are refused before anything is written.
+#[test]
+fn context_views_are_encoded_together_and_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let out = dir.path().join("context.safetensors");
+    let eval_data = data.to_str().unwrap();
+    train(
+        &data,
+        &out,
+        4,
+        &[
+            "--context-views",
+            "1,0",
+            "--views",
+            "3",
+            "--mask-weight",
+            "0.1",
+            "--attention-mask-weight",
+            "0.1",
+            "--eval-data",
+            eval_data,
+            "--eval-every",
+            "4",
+            "--eval-scenes",
+            "1",
+        ],
+    );
+    let run = &info(&out)["training"][0];
+    assert_eq!(run["context_views"], serde_json::json!([1, 0]), "{run}");
+    assert_eq!(run["views"], 3);
+    let log = std::fs::read_to_string(format!("{}.log.jsonl", out.display())).unwrap();
+    let lines: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(lines.iter().filter(|l| l.get("eval").is_none()).count(), 4);
+    assert!(lines
+        .iter()
+        .all(|l| l.get("eval").is_some() || l["loss"].as_f64().unwrap().is_finite()));
+    // Evaluated from views 1 and 0 together: the other two views are the novel ones.
+    let eval = lines
+        .iter()
+        .find_map(|l| l.get("eval"))
+        .expect("an evaluation line");
+    assert!(eval["objects_seen_twice"].as_u64().is_some(), "{eval}");
+    // A run without context views records none (the field is not written).
+    let plain = dir.path().join("plain.safetensors");
+    train(&data, &plain, 1, &[]);
+    assert!(info(&plain)["training"][0].get("context_views").is_none());
+
+    refused(
+        &data,
+        dir.path(),
+        &["--context-views", "0,0", "--views", "2"],
+        "named twice",
+    );
+    refused(
+        &data,
+        dir.path(),
+        &["--context-views", "0,1", "--views", "1"],
+        "context views",
+    );
+    refused(
+        &data,
+        dir.path(),
+        &["--context-views", "0,9", "--views", "2"],
+        "no context view 9",
+    );
+}

@@ -16,7 +16,7 @@ byte-identical file. Presets: small (trains on a 2-core CPU: 64x64 encoder input
 tokens, slot dimension 64, about 3 M parameters) and paper (the sizes of the COLF supplement: \
 128x128 encoder input, slot dimension 128, light fields with 2 hidden layers of 256 units).\n\n\
 `colf-train --data DIR --out MODEL` trains: each step takes --batch scenes, encodes one random \
-view of each, and supervises --rays random rays in each of --views views (the input view and \
+view of each (or the views --context-views names, together), and supervises --rays random rays in each of --views views (the input view and \
 novel views) with an L2 loss (+ --l1-weight L1) and a small penalty on the foreground latents; \
 Adam with a linear warm-up. Every step draws its randomness from (--seed, step), so a run \
 resumed with --resume from OUT.ckpt takes exactly the steps an uninterrupted run would. The \
@@ -80,6 +80,14 @@ pub struct RunArgs {
     /// Views supervised per scene: the encoded input view and VIEWS-1 novel views.
     #[arg(long, default_value_t = 2, value_name = "V")]
     pub views: usize,
+
+    /// Encode these views of every scene together (comma-separated indices, e.g. 0,1: the
+    /// context views of a City-Block street, one in front of each row of cars): each view's
+    /// --slots slots are placed from its own camera, and together they are the scene's slots
+    /// (its background latent the mean of the views'). The context views are supervised first,
+    /// then VIEWS minus their number of others. Default: one random view.
+    #[arg(long, value_delimiter = ',', value_name = "V,V")]
+    pub context_views: Vec<usize>,
 
     /// Random rays supervised per view.
     #[arg(long, default_value_t = 512, value_name = "R")]
@@ -588,6 +596,7 @@ impl RunArgs {
             steps: args.steps,
             batch_scenes: args.batch,
             views_per_scene: args.views,
+            context_views: args.context_views.clone(),
             rays_per_view: args.rays,
             slots: args.slots,
             lr: args.lr,

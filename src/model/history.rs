@@ -61,6 +61,10 @@ pub struct TrainingRun {
     pub planned_steps: u64,
     pub batch: usize,
     pub views: usize,
+    /// The views each scene encoded together (`--context-views`); not written when empty (one
+    /// random view).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub context_views: Vec<usize>,
     pub rays: usize,
     pub lr: f64,
     pub warmup: u64,
@@ -219,6 +223,7 @@ mod tests {
             planned_steps: 20,
             batch: 4,
             views: 2,
+            context_views: vec![0, 1],
             rays: 512,
             lr: 5e-5,
             warmup: 100,
@@ -247,9 +252,12 @@ mod tests {
         // A run without learning-rate factors is written as before they existed.
         let plain = TrainingRun {
             lr_scale: vec![],
+            context_views: vec![],
             ..run()
         };
-        assert!(!to_json(&[plain]).contains("lr_scale"));
+        assert!(!to_json(std::slice::from_ref(&plain)).contains("lr_scale"));
+        // Nor, with one random input view, as before context views existed.
+        assert!(!to_json(&[plain]).contains("context_views"));
     }
 
     /// Issue 38: a history whose first run starts from a model with no records cannot say

@@ -1,6 +1,8 @@
-//! Training batches: for each scene, one input view to encode and rays sampled from the input
-//! view and novel views to supervise (the authors supervised only the input view by default — a
-//! known trap: a decoder that only ever reconstructs the view it was given need not learn 3D).
+//! Training batches: for each scene, the input views to encode (one random view, or the scene's
+//! context views: the paper's City-Block encodes a view in front of each row of cars) and rays
+//! sampled from the input views and novel views to supervise (the authors supervised only the
+//! input view by default — a known trap: a decoder that only ever reconstructs the view it was
+//! given need not learn 3D).
 
 use crate::dataset::SceneData;
 use crate::proposals::{any_within, is_instance, UNSURE};
@@ -9,11 +11,13 @@ use glam::DVec3;
 use rand::rngs::StdRng;
 use rand::Rng;
 
-/// How rays are drawn.
-#[derive(Clone, Copy, Debug)]
+/// How views and rays are drawn.
+#[derive(Clone, Debug)]
 pub struct RaySampling {
-    /// Views supervised per scene: the input view plus `views - 1` others.
+    /// Views supervised per scene: the input views plus `views - (input views)` others.
     pub views: usize,
+    /// The views every scene encodes (its context views), in this order; empty: one random view.
+    pub context_views: Vec<usize>,
     /// Rays per supervised view.
     pub rays_per_view: usize,
     /// Share of each view's rays drawn from ground-truth object pixels (needs masks; 0 = uniform).
@@ -85,16 +89,25 @@ pub fn near_object(mask: &[u8], w: usize, h: usize, x: usize, y: usize, margin: 
     any_within(w, h, y * w + x, margin, |q| mask[q] != 0)
 }
 
+/// An encoded view of a scene's sample: the image the encoder reads, and the camera its slots
+/// are placed from.
+pub struct InputView {
+    /// sRGB [0, 1], h×w×3.
+    pub image: Vec<f32>,
+    pub h: usize,
+    pub w: usize,
+    /// Object ids per pixel (0 = background), when the data has masks.
+    pub mask: Option<Vec<u8>>,
+    /// The view's camera (its slots' frames are placed from it).
+    pub frame: crate::camera::Frame,
+    /// The view's shadow threshold (`RaySampling::shadow_depth`; None when off).
+    pub shadow_below: Option<f32>,
+}
+
 /// One scene's part of a batch.
 pub struct SceneSample {
-    /// Input image, sRGB [0, 1], h×w×3.
-    pub input: Vec<f32>,
-    pub input_h: usize,
-    pub input_w: usize,
-    /// Object ids of the input view per pixel (0 = background), when the data has masks.
-    pub input_mask: Option<Vec<u8>>,
-    /// The input view's camera (foreground slots' frames are placed from it).
-    pub input_frame: crate::camera::Frame,
+    /// The views encoded: one, or the context views; their slots together are the scene's.
+    pub inputs: Vec<InputView>,
     pub origins: Vec<DVec3>,
     pub dirs: Vec<DVec3>,
     /// Target colours, R×3.
@@ -105,8 +118,6 @@ pub struct SceneSample {
     /// band where objects cast shadows) or in shadow (`RaySampling::shadow_depth`); mask losses
     /// leave it to the colour loss.
     pub near_object: Vec<bool>,
-    /// The input view's shadow threshold (`RaySampling::shadow_depth`; None when off).
-    pub input_shadow_below: Option<f32>,
     pub has_masks: bool,
     /// Some(rays per view) when `ids` are local to each view (object proposals): objects are
     /// then matched to slots view by view, in blocks of that many rays.
@@ -123,11 +134,20 @@ pub fn sample_scene(
     if n_views == 0 {
         bail!("scene {} has no views", scene.name);
     }
-    let input_index = rng.random_range(0..n_views);
-    let input = &scene.views[input_index];
-    // The input view first, then distinct other views (with repeats only if there are too few).
-    let mut others: Vec<usize> = (0..n_views).filter(|&v| v != input_index).collect();
-    let mut views = vec![input_index];
+    let inputs = if sampling.context_views.is_empty() {
+        vec![rng.random_range(0..n_views)]
+    } else {
+        if let Some(&v) = sampling.context_views.iter().find(|&&v| v >= n_views) {
+            bail!(
+                "scene {} has {n_views} views; there is no context view {v}",
+                scene.name
+            );
+        }
+        sampling.context_views.clone()
+    };
+    // The input views first, then distinct other views (with repeats only if there are too few).
+    let mut others: Vec<usize> = (0..n_views).filter(|v| !inputs.contains(v)).collect();
+    let mut views: Vec<usize> = inputs.iter().copied().take(sampling.views).collect();
     while views.len() < sampling.views {
         if others.is_empty() {
             others = (0..n_views).collect();
@@ -138,17 +158,27 @@ pub fn sample_scene(
     let has_masks = scene.views.iter().all(|v| v.mask.is_some());
     let total = sampling.views * sampling.rays_per_view;
     let mut sample = SceneSample {
-        input: input.image.data.clone(),
-        input_h: input.image.h as usize,
-        input_w: input.image.w as usize,
-        input_mask: input.mask.clone(),
-        input_frame: input.frame.clone(),
+        inputs: inputs
+            .iter()
+            .map(|&v| {
+                let view = &scene.views[v];
+                InputView {
+                    image: view.image.data.clone(),
+                    h: view.image.h as usize,
+                    w: view.image.w as usize,
+                    mask: view.mask.clone(),
+                    frame: view.frame.clone(),
+                    shadow_below: view.mask.as_ref().and_then(|mask| {
+                        shadow_threshold(mask, &view.image.data, sampling.shadow_depth)
+                    }),
+                }
+            })
+            .collect(),
         origins: Vec::with_capacity(total),
         dirs: Vec::with_capacity(total),
         targets: Vec::with_capacity(3 * total),
         ids: Vec::with_capacity(total),
         near_object: Vec::with_capacity(total),
-        input_shadow_below: None,
         has_masks,
         view_block: scene.view_local_ids.then_some(sampling.rays_per_view),
     };
@@ -172,9 +202,6 @@ pub fn sample_scene(
             margin: sampling.mask_margin,
             shadow_below: shadow_threshold(mask, &view.image.data, sampling.shadow_depth),
         });
-        if v == input_index {
-            sample.input_shadow_below = exclusion.as_ref().and_then(|e| e.shadow_below);
-        }
         for r in 0..sampling.rays_per_view {
             let p = if r < n_object {
                 object_pixels[rng.random_range(0..object_pixels.len())]
@@ -202,6 +229,83 @@ pub fn sample_scene(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use rand::SeedableRng;
+
+    /// A scene of `n` 2×2 views, view v filled with the grey v / 10.
+    fn scene_of(n: usize) -> SceneData {
+        let views = (0..n)
+            .map(|v| crate::dataset::View {
+                path: format!("view_{v}.png").into(),
+                image: crate::image_io::RgbImage32 {
+                    w: 2,
+                    h: 2,
+                    data: vec![v as f32 / 10.0; 12],
+                },
+                mask: Some(vec![0, 1, 0, 0]),
+                frame: crate::encode::default_camera(2, 2),
+            })
+            .collect();
+        SceneData {
+            name: "s".into(),
+            views,
+            view_local_ids: true,
+        }
+    }
+
+    /// The view each of `sample`'s rays came from (their targets are the views' greys).
+    fn ray_views(sample: &SceneSample) -> Vec<usize> {
+        sample
+            .targets
+            .chunks(3)
+            .map(|c| (c[0] * 10.0).round() as usize)
+            .collect()
+    }
+
+    #[test]
+    fn context_views_are_encoded_together_and_supervised_first() {
+        let scene = scene_of(5);
+        let sampling = |views, context_views: &[usize]| RaySampling {
+            views,
+            context_views: context_views.to_vec(),
+            rays_per_view: 3,
+            object_fraction: 0.0,
+            mask_margin: 0,
+            shadow_depth: 0.0,
+        };
+        for seed in 0..8 {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let sample = sample_scene(&scene, &sampling(4, &[3, 1]), &mut rng).unwrap();
+            let inputs: Vec<usize> = sample
+                .inputs
+                .iter()
+                .map(|v| (v.image[0] * 10.0).round() as usize)
+                .collect();
+            assert_eq!(inputs, [3, 1]);
+            assert!(sample.inputs.iter().all(|v| (v.w, v.h) == (2, 2)));
+            let rays = ray_views(&sample);
+            assert_eq!(&rays[..6], &[3, 3, 3, 1, 1, 1]);
+            // Then two distinct views that are not context views.
+            let (a, b) = (rays[6], rays[9]);
+            assert!(a != b && ![3, 1].contains(&a) && ![3, 1].contains(&b));
+            assert!(rays[6..9].iter().all(|&v| v == a) && rays[9..].iter().all(|&v| v == b));
+        }
+        // Without context views, one random input view, supervised first.
+        let mut rng = StdRng::seed_from_u64(3);
+        let sample = sample_scene(&scene, &sampling(2, &[]), &mut rng).unwrap();
+        assert_eq!(sample.inputs.len(), 1);
+        let input = (sample.inputs[0].image[0] * 10.0).round() as usize;
+        assert_eq!(ray_views(&sample)[0], input);
+        // A context view the scene does not have: one error naming the scene and the view.
+        let mut rng = StdRng::seed_from_u64(0);
+        let error = sample_scene(&scene, &sampling(2, &[0, 5]), &mut rng)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            error.contains("scene s") && error.contains("context view 5"),
+            "{error}"
+        );
+    }
 
     #[test]
     fn near_object_marks_the_background_band_around_objects() {

@@ -4,7 +4,7 @@
 //! Every step draws its randomness from `StdRng::seed_from_u64(mix(seed, step))`, so a run
 //! resumed from a checkpoint at step N takes exactly the steps an uninterrupted run would have.
 
-use super::batch::{sample_scene, MaskExclusion, RaySampling, SceneSample};
+use super::batch::{sample_scene, InputView, MaskExclusion, RaySampling, SceneSample};
 use super::known_background::{view_proposals, KnownBackground};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
@@ -55,6 +55,10 @@ pub struct TrainOptions {
     /// Scenes per batch.
     pub batch_scenes: usize,
     pub views_per_scene: usize,
+    /// The views every scene encodes together (its context views: slots of all of them make
+    /// the scene's); empty: one random view.
+    #[serde(default)]
+    pub context_views: Vec<usize>,
     pub rays_per_view: usize,
     /// Foreground slots (default: the model's).
     pub slots: Option<usize>,
@@ -180,6 +184,18 @@ impl TrainOptions {
         if !(0.0..=1.0).contains(&self.mask_shadow_depth) {
             bail!("the mask shadow depth must be in [0, 1]");
         }
+        if let Some(error) = crate::evaluate::input_views_error(&self.context_views)
+            .filter(|_| !self.context_views.is_empty())
+        {
+            bail!("context views: {error}");
+        }
+        if self.views_per_scene < self.context_views.len() {
+            bail!(
+                "{} views supervised per scene cannot include the {} context views",
+                self.views_per_scene,
+                self.context_views.len()
+            );
+        }
         if self.proposals_against.is_some() && !self.proposals {
             bail!("proposals against a known background need proposals");
         }
@@ -297,6 +313,16 @@ impl Trainer {
             opts.proposals,
             opts.proposals_against.as_deref(),
         )?;
+        if let Some(&last) = opts.context_views.iter().max() {
+            if let Some(scene) = data.iter().find(|s| s.views.len() <= last) {
+                bail!(
+                    "{}: scene {} has {} views; there is no context view {last}",
+                    opts.data.display(),
+                    scene.name,
+                    scene.views.len()
+                );
+            }
+        }
         let (colf, adam_state, step, bad_steps, earlier_runs, init_identity) = if resume {
             let path = opts.checkpoint_path();
             let bytes = std::fs::read(&path).with_context(|| {
@@ -440,7 +466,7 @@ impl Trainer {
         log.psnr = crate::metrics::psnr_from_mse(mse_value.max(1e-12));
         log.lr = self.learning_rate();
         let rgb_host = forward.decoded.rgb.flatten_all()?.to_vec1::<f32>()?;
-        let s = 1 + self.num_slots;
+        let s = 1 + self.scene_slots();
         ray_metrics(
             &mut log,
             &samples,
@@ -458,11 +484,22 @@ impl Trainer {
         Ok(log)
     }
 
-    /// Step 1: `batch_scenes` scenes drawn with `rng`, each with its input view and rays.
+    /// Views each scene encodes: its context views, or one.
+    fn inputs_per_scene(&self) -> usize {
+        self.opts.context_views.len().max(1)
+    }
+
+    /// Foreground slots of a scene: `num_slots` from each of its input views.
+    fn scene_slots(&self) -> usize {
+        self.num_slots * self.inputs_per_scene()
+    }
+
+    /// Step 1: `batch_scenes` scenes drawn with `rng`, each with its input views and rays.
     fn sample_batch(&self, rng: &mut StdRng) -> Result<Vec<SceneSample>> {
         let opts = &self.opts;
         let sampling = RaySampling {
             views: opts.views_per_scene,
+            context_views: opts.context_views.clone(),
             rays_per_view: opts.rays_per_view,
             object_fraction: opts.object_fraction,
             mask_margin: opts.mask_margin,
@@ -477,43 +514,55 @@ impl Trainer {
     }
 
     /// Step 2: the input views encoded (slot noise from `rng`), the slots placed in their
-    /// frames, and the sampled rays decoded.
+    /// frames (each view's from its camera; a scene's slots are those of all its input views),
+    /// and the sampled rays decoded.
     fn forward(&self, samples: &[SceneSample], rng: &mut StdRng) -> Result<Forward> {
         let model = self.colf.model();
         let cfg = self.colf.config();
         let dev = self.colf.device();
-        let images = samples
+        let inputs: Vec<&InputView> = samples.iter().flat_map(|s| &s.inputs).collect();
+        let images = inputs
             .iter()
-            .map(|s| image_tensor(cfg, &s.input, s.input_h, s.input_w, dev))
+            .map(|v| image_tensor(cfg, &v.image, v.h, v.w, dev))
             .collect::<candle_core::Result<Vec<_>>>()?;
         let mut encoded = model.encode(&Tensor::cat(&images, 0)?, self.num_slots, rng)?;
         if cfg.frames_from_residual {
             // The input views' object proposals (against the known background) place the slots.
-            let objects = samples
+            let objects = inputs
                 .iter()
-                .map(|s| {
-                    let Some(ids) = &s.input_mask else {
+                .map(|v| {
+                    let Some(ids) = &v.mask else {
                         bail!("`frames_from_residual` places slots from the input view's object proposals: train with --proposals");
                     };
-                    let pixels = crate::proposals::object_pixels(ids);
-                    Ok((pixels, s.input_h, s.input_w))
+                    Ok((crate::proposals::object_pixels(ids), v.h, v.w))
                 })
                 .collect::<Result<Vec<_>>>()?;
             let objects: Vec<(&[f32], usize, usize)> =
                 objects.iter().map(|(p, h, w)| (&p[..], *h, *w)).collect();
             encoded.attend_within_pixels(&objects, crate::model::frames::MIN_OBJECT_SHARE)?;
         }
-        let fields = model.prepare(&encoded.fg, &encoded.bg)?;
         let centroids = encoded.fg_centroid.to_vec3::<f32>()?;
         let bottoms = encoded.fg_bottom.to_vec2::<f32>()?;
-        let frames: Vec<Vec<DMat4>> = samples
+        let view_frames: Vec<Vec<DMat4>> = inputs
             .iter()
             .zip(centroids.iter().zip(&bottoms))
-            .map(|(s, (c, bottom))| {
+            .map(|(v, (c, bottom))| {
                 let c: Vec<[f32; 2]> = c.iter().map(|p| [p[0], p[1]]).collect();
-                crate::model::frames::slot_frames(cfg, &s.input_frame, &c, bottom)
+                crate::model::frames::slot_frames(cfg, &v.frame, &c, bottom)
             })
             .collect();
+        let c = self.inputs_per_scene();
+        let frames: Vec<Vec<DMat4>> = view_frames.chunks(c).map(|f| f.concat()).collect();
+        let fields = if c == 1 {
+            model.prepare(&encoded.fg, &encoded.bg)?
+        } else {
+            // Scene-major images: a scene's C·K slots are its views' slots in order, and its
+            // background latent the mean of its views' (one background a scene).
+            let (n, k, d) = encoded.fg.dims3()?;
+            let fg = encoded.fg.reshape((n / c, c * k, d))?;
+            let bg = encoded.bg.reshape((n / c, c, d))?.mean(1)?;
+            model.prepare(&fg, &bg)?
+        };
         let scene_rays: Vec<SceneRays> = samples
             .iter()
             .zip(&frames)
@@ -546,7 +595,7 @@ impl Trainer {
         log: &mut StepLog,
     ) -> Result<(Tensor, Tensor)> {
         let opts = &self.opts;
-        let (b, k) = (samples.len(), self.num_slots);
+        let (b, k) = (samples.len(), self.scene_slots());
         let r = samples[0].origins.len();
         let Forward {
             encoded,
@@ -592,9 +641,10 @@ impl Trainer {
         samples: &[SceneSample],
         encoded: &SlotOutput,
     ) -> Result<Option<Tensor>> {
-        let Some(masks) = samples
+        let inputs: Vec<&InputView> = samples.iter().flat_map(|s| &s.inputs).collect();
+        let Some(masks) = inputs
             .iter()
-            .map(|s| s.input_mask.as_ref())
+            .map(|v| v.mask.as_ref())
             .collect::<Option<Vec<_>>>()
         else {
             return Ok(None);
@@ -607,18 +657,19 @@ impl Trainer {
             .flatten_all()?
             .to_vec1::<f32>()?;
         let (mut index, mut valid) = (Vec::new(), Vec::new());
-        for (bi, (sample, mask)) in samples.iter().zip(masks).enumerate() {
+        // One encoded image at a time: each view's attention over its own slots.
+        for (i, (view, mask)) in inputs.iter().zip(masks).enumerate() {
             let exclusion = MaskExclusion {
                 mask,
-                image: &sample.input,
-                w: sample.input_w,
-                h: sample.input_h,
+                image: &view.image,
+                w: view.w,
+                h: view.h,
                 margin: self.opts.mask_margin,
-                shadow_below: sample.input_shadow_below,
+                shadow_below: view.shadow_below,
             };
             let (ids, near) = token_ids(&exclusion, g);
-            let scene = &attention[bi * g * g * s..(bi + 1) * g * g * s];
-            let (i, v) = match_objects(&ids, scene, s, Some(&near));
+            let image = &attention[i * g * g * s..(i + 1) * g * g * s];
+            let (i, v) = match_objects(&ids, image, s, Some(&near));
             index.extend(i);
             valid.extend(v);
         }
@@ -725,7 +776,13 @@ impl Trainer {
             &self.colf,
             data,
             Some(self.opts.eval_scenes),
-            &crate::evaluate::Protocol::default(),
+            &crate::evaluate::Protocol {
+                inputs: match &self.opts.context_views[..] {
+                    [] => vec![0],
+                    views => views.to_vec(),
+                },
+                novel: None,
+            },
             &crate::encode::EncodeOptions::one_pass(self.num_slots),
             |_, _, _| {},
         )?;
@@ -848,6 +905,7 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         planned_steps: opts.steps,
         batch: opts.batch_scenes,
         views: opts.views_per_scene,
+        context_views: opts.context_views.clone(),
         rays: opts.rays_per_view,
         lr: opts.lr,
         warmup: opts.warmup,
