@@ -545,10 +545,18 @@ CITY_PROPOSALS := --proposals-against $(CITY_RUN)/c0.safetensors --mask-weight 0
 # The test protocol: encoded from the two context views, scored on the two street views.
 CITY_EVAL := --input-views 0,1 --novel-views 2,3
 CITY_BACKGROUND := --set static_background=true --set zero_background=true --set background_reader=false
-# The slots' start (c1): the background's ordering measured from the nearest car on each ray,
-# not from the world origin, which on a street can lie far in front of the cars (c0 has no
-# slots, so it is unaffected).
-CITY_SLOTS := --set background_from_nearest_slot=true
+# The slots' start (c1; docs/training-log.md, "The city model", eleventh session): the
+# background's ordering measured from the nearest car on each ray, not from the world origin,
+# which on a street can lie far in front of the cars (c0 has no slots, so it is unaffected);
+# each slot placed from its attention on the view's object pixels, at their ground contact; a
+# locality bound tight enough that a slot cannot draw the next lane's car; slots more than 2
+# units behind a ray's origin culled (a context view's camera stands in front of the other
+# row's cars).
+CITY_SLOTS := --set background_from_nearest_slot=true --set frames_from_residual=true \
+  --set frame_ground_contact=true --set fg_locality=0.5 --set cull_behind=2
+# Both context views encoded together in every step (the paper: "two rows of cars (two context
+# views)"), so every car has slots of its own and none need draw a car its view does not show.
+CITY_CONTEXT := --context-views 0,1
 model-city: build
 	@mkdir -p $(CITY_RUN)/data
 	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
@@ -564,12 +572,12 @@ model-city: build
 	  --steps 30000 --lr 1e-3 --warmup 200 --decay-from 20000 --final-lr 1e-4 \
 	  $(if $(wildcard $(CITY_RUN)/c0.safetensors.ckpt),--resume,--init models/default.safetensors $(CITY_BACKGROUND))
 	test -f $(CITY_RUN)/c2.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) --data $(CITY_RUN)/data/train \
+	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
 	  --steps 60000 --lr 5e-5 --warmup 200 --decay-from 45000 --final-lr 1e-5 \
 	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors) \
 	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
-	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) --data $(CITY_RUN)/data/train128 \
+	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) --data $(CITY_RUN)/data/train128 \
 	  --eval-data $(CITY_RUN)/data/val128 --out $(CITY_RUN)/c2.safetensors \
 	  --steps 50000 --lr 2e-5 --warmup 100 --decay-from 35000 --final-lr 2e-6 \
 	  $(call resume_or_init,$(CITY_RUN)/c2.safetensors,$(CITY_RUN)/c1.safetensors)
