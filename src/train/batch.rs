@@ -168,9 +168,8 @@ pub fn sample_scene(
                     w: view.image.w as usize,
                     mask: view.mask.clone(),
                     frame: view.frame.clone(),
-                    shadow_below: view.mask.as_ref().and_then(|mask| {
-                        shadow_threshold(mask, &view.image.data, sampling.shadow_depth)
-                    }),
+                    // Set below, where the supervised views' thresholds are computed.
+                    shadow_below: None,
                 }
             })
             .collect(),
@@ -202,6 +201,9 @@ pub fn sample_scene(
             margin: sampling.mask_margin,
             shadow_below: shadow_threshold(mask, &view.image.data, sampling.shadow_depth),
         });
+        if let Some(i) = inputs.iter().position(|&input| input == v) {
+            sample.inputs[i].shadow_below = exclusion.as_ref().and_then(|e| e.shadow_below);
+        }
         for r in 0..sampling.rays_per_view {
             let p = if r < n_object {
                 object_pixels[rng.random_range(0..object_pixels.len())]

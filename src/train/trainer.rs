@@ -184,10 +184,10 @@ impl TrainOptions {
         if !(0.0..=1.0).contains(&self.mask_shadow_depth) {
             bail!("the mask shadow depth must be in [0, 1]");
         }
-        if let Some(error) = crate::evaluate::input_views_error(&self.context_views)
-            .filter(|_| !self.context_views.is_empty())
-        {
-            bail!("context views: {error}");
+        if !self.context_views.is_empty() {
+            if let Some(error) = crate::evaluate::input_views_error(&self.context_views) {
+                bail!("context views: {error}");
+            }
         }
         if self.views_per_scene < self.context_views.len() {
             bail!(
