@@ -12,11 +12,7 @@
 
 use anyhow::{bail, Context, Result};
 use colf::dataset::Dataset;
-use colf::encode::refine::refine_slots;
-use colf::encode::refine::RefineOptions;
-use colf::encode::EncodeOptions;
-use colf::encode::InputView;
-use colf::evaluate::encode_scene;
+use colf::evaluate::fit_latents_to_views;
 use colf::metrics::psnr;
 use colf::render::PreparedScene;
 use std::path::PathBuf;
@@ -75,11 +71,6 @@ fn main() -> Result<()> {
     let args = parse_args()?;
     let model = colf::cli::model_path::load_model(args.model.as_deref())?;
     let data = Dataset::open(&args.data)?;
-    let eval = EncodeOptions::one_pass(model.config().default_slots);
-    let refine = RefineOptions {
-        steps: args.steps,
-        ..RefineOptions::default()
-    };
     println!("| views fitted | fitted PSNR | held-out PSNR | scenes |");
     println!("| ---: | ---: | ---: | ---: |");
     let first_held_out = args.views.iter().copied().max().unwrap_or(1);
@@ -87,26 +78,7 @@ fn main() -> Result<()> {
         let (mut fitted, mut held_out) = (Vec::new(), Vec::new());
         for i in 0..args.scenes.min(data.len()) {
             let scene = data.load(i)?;
-            if scene.views.len() < fit {
-                bail!(
-                    "{}: {} views, fewer than the {fit} to fit",
-                    scene.name,
-                    scene.views.len()
-                );
-            }
-            let mut codes = encode_scene(&model, &scene, &[0], &eval)?;
-            let views: Vec<InputView> = scene.views[..fit]
-                .iter()
-                .map(|v| InputView::new(&v.frame, &v.image))
-                .collect();
-            let views: Vec<&InputView> = views.iter().collect();
-            refine_slots(
-                &model,
-                &mut codes.slots,
-                &mut codes.background,
-                &views,
-                &refine,
-            )?;
+            let codes = fit_latents_to_views(&model, &scene, fit, args.steps)?;
             let prepared = PreparedScene::new(&model, &codes, &scene.name)?;
             for (v, view) in scene.views.iter().enumerate() {
                 let render = prepared.render_frame(&model, &view.frame)?;

@@ -16,7 +16,8 @@
 use crate::codes::Codes;
 use crate::dataset::{Dataset, SceneData};
 use crate::encode::multiview::{encode_views, ViewInput};
-use crate::encode::EncodeOptions;
+use crate::encode::refine::{refine_slots, RefineOptions};
+use crate::encode::{EncodeOptions, InputView};
 use crate::metrics::{ari, fg_ari, mean_std, psnr, ssim};
 use crate::model::Colf;
 use crate::render::output::FrameRender;
@@ -215,6 +216,44 @@ pub fn encode_scene(
         })
         .collect();
     Ok(encode_views(model, &views, opts)?.0)
+}
+
+/// The bound on what any encoding could do (`examples/multiview_fit`, `capacity_fit`): view 0
+/// of `scene` encoded in one pass with the model's default slot count, then the latents and
+/// frame origins refined on its first `views` views for `steps` steps (the `colf-encode
+/// --refine` settings otherwise).
+pub fn fit_latents_to_views(
+    model: &Colf,
+    scene: &SceneData,
+    views: usize,
+    steps: usize,
+) -> Result<Codes> {
+    if scene.views.len() < views {
+        bail!(
+            "{}: {} views, fewer than the {views} to fit",
+            scene.name,
+            scene.views.len()
+        );
+    }
+    let one_pass = EncodeOptions::one_pass(model.config().default_slots);
+    let mut codes = encode_scene(model, scene, &[0], &one_pass)?;
+    let inputs: Vec<InputView> = scene.views[..views]
+        .iter()
+        .map(|v| InputView::new(&v.frame, &v.image))
+        .collect();
+    let inputs: Vec<&InputView> = inputs.iter().collect();
+    let refine = RefineOptions {
+        steps,
+        ..RefineOptions::default()
+    };
+    refine_slots(
+        model,
+        &mut codes.slots,
+        &mut codes.background,
+        &inputs,
+        &refine,
+    )?;
+    Ok(codes)
 }
 
 /// Why `inputs` cannot name the input views of any scene (none, or one twice), if so.

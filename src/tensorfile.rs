@@ -6,6 +6,9 @@
 //! so the (simple) format is written here with sorted keys: an 8-byte little-endian header
 //! length, a JSON header padded with spaces to a multiple of 8, then the raw little-endian data.
 //! Reading goes through the `safetensors` crate, which validates offsets and sizes.
+//!
+//! Values are F32, except that a model file may store a tensor as F16 ([`Stored::F16`]; codes
+//! files are F32 only): half the bytes, and widened back to f32 exactly on reading.
 
 use anyhow::{anyhow, bail, Result};
 use safetensors::{Dtype, SafeTensors};
@@ -18,10 +21,44 @@ pub struct F32Tensor<'a> {
     pub data: &'a [f32],
 }
 
+/// How a tensor's values are written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stored {
+    F32,
+    /// IEEE half precision, rounded to nearest (`half::f16::from_f32`): the caller rounds the
+    /// values first ([`round_to_f16`]) when it needs to know what will be read back.
+    F16,
+}
+
+impl Stored {
+    fn bytes(self) -> usize {
+        match self {
+            Stored::F32 => 4,
+            Stored::F16 => 2,
+        }
+    }
+}
+
+/// `v` as it reads back from an F16 tensor.
+pub fn round_to_f16(v: f32) -> f32 {
+    half::f16::from_f32(v).to_f32()
+}
+
 /// Serialises f32 tensors and string metadata into safetensors bytes, deterministically.
 pub fn serialize_f32(tensors: &[F32Tensor], metadata: &BTreeMap<String, String>) -> Vec<u8> {
-    let mut sorted: Vec<&F32Tensor> = tensors.iter().collect();
-    sorted.sort_by(|a, b| a.name.cmp(b.name));
+    serialize(tensors, |_| Stored::F32, metadata)
+}
+
+/// Serialises tensors, each stored as `stored(name)` says, and string metadata into
+/// safetensors bytes, deterministically.
+pub fn serialize(
+    tensors: &[F32Tensor],
+    stored: impl Fn(&str) -> Stored,
+    metadata: &BTreeMap<String, String>,
+) -> Vec<u8> {
+    let mut sorted: Vec<(&F32Tensor, Stored)> =
+        tensors.iter().map(|t| (t, stored(t.name))).collect();
+    sorted.sort_by(|a, b| a.0.name.cmp(b.0.name));
     let mut header = serde_json::Map::new();
     if !metadata.is_empty() {
         header.insert(
@@ -30,17 +67,21 @@ pub fn serialize_f32(tensors: &[F32Tensor], metadata: &BTreeMap<String, String>)
         );
     }
     let mut offset = 0usize;
-    for t in &sorted {
+    for (t, how) in &sorted {
         assert_eq!(
             t.shape.iter().product::<usize>(),
             t.data.len(),
             "tensor {} shape/data mismatch",
             t.name
         );
-        let end = offset + 4 * t.data.len();
+        let end = offset + how.bytes() * t.data.len();
+        let dtype = match how {
+            Stored::F32 => "F32",
+            Stored::F16 => "F16",
+        };
         header.insert(
             t.name.to_string(),
-            serde_json::json!({"dtype": "F32", "shape": t.shape, "data_offsets": [offset, end]}),
+            serde_json::json!({"dtype": dtype, "shape": t.shape, "data_offsets": [offset, end]}),
         );
         offset = end;
     }
@@ -50,9 +91,18 @@ pub fn serialize_f32(tensors: &[F32Tensor], metadata: &BTreeMap<String, String>)
     let mut out = Vec::with_capacity(8 + header_bytes.len() + offset);
     out.extend_from_slice(&(header_bytes.len() as u64).to_le_bytes());
     out.extend_from_slice(&header_bytes);
-    for t in &sorted {
-        for v in t.data {
-            out.extend_from_slice(&v.to_le_bytes());
+    for (t, how) in &sorted {
+        match how {
+            Stored::F32 => {
+                for v in t.data {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+            }
+            Stored::F16 => {
+                for v in t.data {
+                    out.extend_from_slice(&half::f16::from_f32(*v).to_le_bytes());
+                }
+            }
         }
     }
     out
@@ -115,17 +165,39 @@ impl<'a> TensorFile<'a> {
         tensor: &str,
         expected: &[Option<usize>],
     ) -> Result<(Vec<usize>, Vec<f32>)> {
+        let (shape, values, _) = self.stored_tensor(tensor, expected, false)?;
+        Ok((shape, values))
+    }
+
+    /// [`TensorFile::f32_tensor`] for a tensor stored as F32 or F16 (widened exactly), and how
+    /// it was stored.
+    pub fn f32_or_f16_tensor(
+        &self,
+        tensor: &str,
+        expected: &[Option<usize>],
+    ) -> Result<(Vec<usize>, Vec<f32>, Stored)> {
+        self.stored_tensor(tensor, expected, true)
+    }
+
+    fn stored_tensor(
+        &self,
+        tensor: &str,
+        expected: &[Option<usize>],
+        half_allowed: bool,
+    ) -> Result<(Vec<usize>, Vec<f32>, Stored)> {
         let name = &self.name;
         let view = self
             .tensors
             .tensor(tensor)
             .map_err(|_| anyhow!("{name}: tensor `{tensor}` is missing"))?;
-        if view.dtype() != Dtype::F32 {
-            bail!(
-                "{name}: tensor `{tensor}` has dtype {:?}, expected F32",
-                view.dtype()
-            );
-        }
+        let stored = match view.dtype() {
+            Dtype::F32 => Stored::F32,
+            Dtype::F16 if half_allowed => Stored::F16,
+            other => {
+                let want = if half_allowed { "F32 or F16" } else { "F32" };
+                bail!("{name}: tensor `{tensor}` has dtype {other:?}, expected {want}");
+            }
+        };
         let shape = view.shape().to_vec();
         let shape_ok = shape.len() == expected.len()
             && shape
@@ -142,15 +214,22 @@ impl<'a> TensorFile<'a> {
                 want.join(", ")
             );
         }
-        let values: Vec<f32> = view
-            .data()
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .collect();
+        let values: Vec<f32> = match stored {
+            Stored::F32 => view
+                .data()
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect(),
+            Stored::F16 => view
+                .data()
+                .chunks_exact(2)
+                .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
+                .collect(),
+        };
         if let Some(i) = values.iter().position(|v| !v.is_finite()) {
             bail!("{name}: tensor `{tensor}` has a non-finite value at flat index {i}");
         }
-        Ok((shape, values))
+        Ok((shape, values, stored))
     }
 }
 
@@ -210,6 +289,58 @@ mod tests {
             assert!(format!("{err}").starts_with("cut.safetensors: "));
         }
         assert!(TensorFile::parse(b"hello world, not a tensor file", "g").is_err());
+    }
+
+    #[test]
+    fn half_tensors_round_trip_where_allowed() {
+        let a = [1.0f32, -0.1, 3.0e-3, 65504.0, 1.0e-9];
+        let b = [0.25f32, 0.5];
+        let tensors = [
+            F32Tensor {
+                name: "a",
+                shape: vec![5],
+                data: &a,
+            },
+            F32Tensor {
+                name: "b",
+                shape: vec![2],
+                data: &b,
+            },
+        ];
+        let half_a = |n: &str| if n == "a" { Stored::F16 } else { Stored::F32 };
+        let bytes = serialize(&tensors, half_a, &BTreeMap::new());
+        assert_eq!(bytes, serialize(&tensors, half_a, &BTreeMap::new()));
+        // Two bytes a value fewer (the headers differ only in the offsets' digits).
+        let full = serialize_f32(&tensors, &BTreeMap::new());
+        assert!(full.len() - bytes.len() >= 2 * a.len() - 8);
+        let file = TensorFile::parse(&bytes, "h.safetensors").unwrap();
+        let (shape, values, stored) = file.f32_or_f16_tensor("a", &[None]).unwrap();
+        assert_eq!((shape, stored), (vec![5], Stored::F16));
+        let rounded: Vec<f32> = a.iter().map(|&v| round_to_f16(v)).collect();
+        assert_eq!(values, rounded);
+        assert_eq!(values[0], 1.0);
+        assert_eq!(values[3], 65504.0);
+        assert_eq!(values[4], 0.0, "below half's smallest subnormal");
+        assert!((values[1] + 0.1).abs() < 1e-4);
+        let (_, values, stored) = file.f32_or_f16_tensor("b", &[None]).unwrap();
+        assert_eq!((values, stored), (b.to_vec(), Stored::F32));
+        // Where only F32 is allowed (codes files), a half tensor is refused by name.
+        let err = file.f32_tensor("a", &[None]).unwrap_err();
+        assert!(format!("{err}").contains("tensor `a` has dtype F16, expected F32"));
+        // A value beyond half's range is infinite when read, and refused.
+        let big = [1.0e5f32];
+        let bytes = serialize(
+            &[F32Tensor {
+                name: "big",
+                shape: vec![1],
+                data: &big,
+            }],
+            |_| Stored::F16,
+            &BTreeMap::new(),
+        );
+        let file = TensorFile::parse(&bytes, "big.safetensors").unwrap();
+        let err = file.f32_or_f16_tensor("big", &[None]).unwrap_err();
+        assert!(format!("{err}").contains("non-finite"));
     }
 
     #[test]

@@ -315,17 +315,22 @@ fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
         .all(|k| !k.starts_with("hypernet_bg.")));
 }
 
+/// `colf-train init --seed 3 -o path`: a fresh `small` model.
+fn init_small_model(path: &Path) {
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .args(["init", "--seed", "3", "-o"])
+        .arg(path)
+        .assert()
+        .success();
+}
+
 #[test]
 fn configure_keeps_the_weights_and_sets_the_default_encoding() {
     let dir = tempfile::tempdir().unwrap();
     let data = data(dir.path());
     let start = dir.path().join("start.safetensors");
-    Command::cargo_bin("colf-train")
-        .unwrap()
-        .args(["init", "--seed", "3", "-o"])
-        .arg(&start)
-        .assert()
-        .success();
+    init_small_model(&start);
     let configured = dir.path().join("configured.safetensors");
     Command::cargo_bin("colf-train")
         .unwrap()
@@ -409,6 +414,82 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
     assert!(stderr.contains("start.safetensors"), "{stderr}");
     assert!(stderr.contains("tensors"), "{stderr}");
     assert!(!wider.exists());
+}
+
+#[test]
+fn configure_half_stores_the_heads_in_half_precision_and_keeps_them_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let start = dir.path().join("start.safetensors");
+    init_small_model(&start);
+    let configure = |from: &Path, to: &Path, extra: &[&str]| {
+        Command::cargo_bin("colf-train")
+            .unwrap()
+            .arg("configure")
+            .arg(from)
+            .args(extra)
+            .arg("-o")
+            .arg(to)
+            .assert()
+            .success();
+    };
+    let half = dir.path().join("half.safetensors");
+    configure(&start, &half, &["--half"]);
+    let size = |p: &Path| std::fs::metadata(p).unwrap().len() as f64;
+    let ratio = size(&half) / size(&start);
+    assert!(
+        (0.5..0.6).contains(&ratio),
+        "half file {ratio} of the full one"
+    );
+    let (full_model, half_model) = (
+        colf::model::Colf::load(&start).unwrap(),
+        colf::model::Colf::load(&half).unwrap(),
+    );
+    assert!(!half_model.half_tensors().is_empty());
+    for (name, tensor) in full_model.parameters() {
+        let (a, b) = (values(&full_model, name), values(&half_model, name));
+        if half_model.half_tensors().contains(name) {
+            assert!(tensor.elem_count() >= 1 << 16, "{name} is small");
+            let rounded: Vec<f32> = a.iter().map(|&v| half::f16::from_f32(v).to_f32()).collect();
+            assert_eq!(b, rounded, "{name}");
+        } else {
+            assert_eq!(a, b, "{name}");
+        }
+    }
+    assert_ne!(
+        full_model.identity().unwrap(),
+        half_model.identity().unwrap()
+    );
+    // Configured again, the file stays half (the same bytes but for the config).
+    let again = dir.path().join("again.safetensors");
+    configure(
+        &half,
+        &again,
+        &["--set", r#"inference={"slots":3,"tries":1,"refine":0}"#],
+    );
+    assert!((size(&again) - size(&half)).abs() < 1024.0);
+    let again_model = colf::model::Colf::load(&again).unwrap();
+    assert_eq!(again_model.half_tensors(), half_model.half_tensors());
+    // The half model works in every stage, e.g. an evaluation.
+    let out = Command::cargo_bin("colf-eval")
+        .unwrap()
+        .arg("--data")
+        .arg(&data)
+        .arg("--model")
+        .arg(&again)
+        .args(["--scenes", "1", "-q"])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{out:?}");
+    // Neither --set nor --half: a usage error.
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("configure")
+        .arg(&start)
+        .arg("-o")
+        .arg(dir.path().join("nothing.safetensors"))
+        .assert()
+        .code(2);
 }
 
 /// A training run on `data` with `extra` flags, refused in one line mentioning `needle`; no

@@ -386,8 +386,8 @@ pub fn run_info(args: &InfoArgs) -> anyhow::Result<()> {
 #[derive(Args, Debug)]
 #[command(
     about = "Change settings of a model's config that keep its weights",
-    long_about = "Write MODEL to OUT (atomically; `-` for stdout, refused on a terminal) with config settings changed by --set KEY=VALUE (the value is JSON; keys as in docs/model.md). Only settings that keep every tensor's name and shape are accepted, so the weights are copied unchanged; the config, and so the identity, change. The main use is `inference`, the encoding colf-encode and colf-eval use with this model when their flags do not say, e.g. --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' (--set inference=null removes it). The new identity is printed on stderr.",
-    after_help = "Examples:\n  colf-train configure stage6.safetensors --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' -o model.safetensors"
+    long_about = "Write MODEL to OUT (atomically; `-` for stdout, refused on a terminal) with config settings changed by --set KEY=VALUE (the value is JSON; keys as in docs/model.md). Only settings that keep every tensor's name and shape are accepted, so the weights are copied unchanged; the config, and so the identity, change. The main use is `inference`, the encoding colf-encode and colf-eval use with this model when their flags do not say, e.g. --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' (--set inference=null removes it). --half writes the large tensors (65,536 values or more: the hypernetworks' heads, nearly all of a model's bytes) in IEEE half precision, about half the file; the weights are then rounded, so the identity changes and the scores should be checked (colf-eval). A model read with half tensors keeps them half when configured again. The new identity is printed on stderr.",
+    after_help = "Examples:\n  colf-train configure stage6.safetensors --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' -o model.safetensors\n  colf-train configure big.safetensors --half -o small.safetensors"
 )]
 pub struct ConfigureArgs {
     /// The model to change.
@@ -395,21 +395,38 @@ pub struct ConfigureArgs {
     pub model: std::path::PathBuf,
 
     /// A config setting to change, KEY=VALUE (repeatable).
-    #[arg(long = "set", value_name = "KEY=VALUE", required = true)]
+    #[arg(
+        long = "set",
+        value_name = "KEY=VALUE",
+        required_unless_present = "half"
+    )]
     pub config_overrides: Vec<String>,
+
+    /// Write the tensors of 65,536 values or more in half precision (IEEE f16).
+    #[arg(long)]
+    pub half: bool,
 
     /// Where to write the model (`-`: stdout).
     #[arg(short, long, value_name = "MODEL")]
     pub output: String,
 }
 
+/// `colf-train configure --half` stores tensors of at least this many values in half precision:
+/// the hypernetworks' heads, not the small encoder, heads and compositor layers.
+pub const HALF_MIN_VALUES: usize = 1 << 16;
+
 /// Runs `colf-train configure`.
 pub fn run_configure(args: &ConfigureArgs) -> anyhow::Result<()> {
     let model = crate::model::Colf::load(&args.model)?;
     let name = args.model.display().to_string();
-    let configured = model
+    let mut configured = model
         .configured(&args.config_overrides)
         .map_err(|e| anyhow::anyhow!("{name}: {e:#}"))?;
+    if args.half {
+        configured = configured
+            .with_half_storage(HALF_MIN_VALUES)
+            .map_err(|e| anyhow::anyhow!("{name}: {e:#}"))?;
+    }
     let (bytes, identity) = configured.to_bytes()?;
     crate::io::write_output(&args.output, &bytes, true)?;
     eprintln!("colf-train: {name} configured, identity {identity}");

@@ -1,9 +1,11 @@
-//! The model file: safetensors, every parameter an F32 tensor under its module path (see
+//! The model file: safetensors, every parameter an F32 tensor (or F16: a model written with
+//! half-precision storage, `colf-train configure --half`) under its module path (see
 //! `docs/model.md`), and `__metadata__`:
 //! - `format` = `colf-model/1`;
 //! - `config` = the [`Config`] as JSON;
 //! - `identity` = the first 16 hex digits of sha256 over the format, the config JSON and every
-//!   tensor (sorted by name: name, shape, little-endian f32 bytes). Codes files record it, and
+//!   tensor (sorted by name: name, shape, little-endian f32 bytes of the values as read, so
+//!   F16 tensors count as their exact f32 widening). Codes files record it, and
 //!   `colf-render` refuses codes of another model;
 //! - `training` (optional) = how the model was trained, a JSON list of runs
 //!   ([`super::history`]); descriptive, so not part of the identity.
@@ -15,11 +17,11 @@
 
 use super::config::Config;
 use super::history::{self, TrainingRun};
-use crate::tensorfile::{serialize_f32, F32Tensor, TensorFile};
+use crate::tensorfile::{round_to_f16, serialize, F32Tensor, Stored, TensorFile};
 use anyhow::{anyhow, bail, Result};
 use candle_core::{Device, Tensor};
 use sha2::{Digest, Sha256};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 /// The `format` metadata value of a model file.
 pub const FORMAT: &str = "colf-model/1";
@@ -62,8 +64,32 @@ pub fn identity(config_json: &str, params: &HostParams) -> String {
     digest[..8].iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// Serialises a model and its training records; returns (bytes, identity).
-pub fn to_bytes(cfg: &Config, params: &HostParams, training: &[TrainingRun]) -> (Vec<u8>, String) {
+/// Serialises a model and its training records, the parameters named in `half` in half
+/// precision; returns (bytes, identity). The identity is that of the values as they will be
+/// read (the half ones rounded).
+pub fn to_bytes(
+    cfg: &Config,
+    params: &HostParams,
+    training: &[TrainingRun],
+    half: &BTreeSet<String>,
+) -> (Vec<u8>, String) {
+    let rounded: HostParams;
+    let params = if half.is_empty() {
+        params
+    } else {
+        rounded = params
+            .iter()
+            .map(|(name, (shape, data))| {
+                let data = if half.contains(name) {
+                    data.iter().map(|&v| round_to_f16(v)).collect()
+                } else {
+                    data.clone()
+                };
+                (name.clone(), (shape.clone(), data))
+            })
+            .collect();
+        &rounded
+    };
     let config_json = cfg.to_json();
     let id = identity(&config_json, params);
     let mut metadata = BTreeMap::new();
@@ -84,7 +110,14 @@ pub fn to_bytes(cfg: &Config, params: &HostParams, training: &[TrainingRun]) -> 
             data,
         })
         .collect();
-    (serialize_f32(&tensors, &metadata), id)
+    let stored = |name: &str| {
+        if half.contains(name) {
+            Stored::F16
+        } else {
+            Stored::F32
+        }
+    };
+    (serialize(&tensors, stored, &metadata), id)
 }
 
 /// A parsed model file: config, tensors and identity (names and shapes not yet checked
@@ -95,6 +128,8 @@ pub struct Checkpoint {
     pub identity: String,
     /// How it was trained (empty when the file does not say).
     pub training: Vec<TrainingRun>,
+    /// The tensors stored in half precision.
+    pub half: BTreeSet<String>,
 }
 
 /// Parses and validates model-file bytes; `name` (the file) starts every error.
@@ -109,6 +144,7 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
     let stored_id = file.require_metadata("identity")?.to_string();
     let training = history::from_metadata(&file.metadata, name)?;
     let mut host = HostParams::new();
+    let mut half = BTreeSet::new();
     for tensor in file.tensors.names() {
         let rank = file
             .tensors
@@ -116,7 +152,10 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
             .map_err(|e| anyhow!("{name}: tensor `{tensor}`: {e}"))?
             .shape()
             .len();
-        let (shape, data) = file.f32_tensor(tensor, &vec![None; rank])?;
+        let (shape, data, stored) = file.f32_or_f16_tensor(tensor, &vec![None; rank])?;
+        if stored == Stored::F16 {
+            half.insert(tensor.to_string());
+        }
         host.insert(tensor.to_string(), (shape, data));
     }
     let id = identity(config_json, &host);
@@ -132,5 +171,6 @@ pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Checkpoint> {
         tensors,
         identity: id,
         training,
+        half,
     })
 }

@@ -11,7 +11,7 @@ use candle_nn::{VarBuilder, VarMap};
 use glam::{DMat4, DVec3};
 use rand::rngs::StdRng;
 use rand::SeedableRng;
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 
 /// Slot latents of one encoded image.
@@ -108,6 +108,9 @@ pub struct Colf {
     device: Device,
     /// How the model was trained (the file's `training` records; empty if unknown).
     training: Vec<TrainingRun>,
+    /// Parameters written in half precision (those read so, or chosen by
+    /// [`Colf::with_half_storage`]); the rest are written as f32.
+    half: BTreeSet<String>,
 }
 
 /// Activation budget of one render chunk: S·rays·width floats ≤ this (8 MiB per tensor;
@@ -135,6 +138,7 @@ impl Colf {
             identity,
             device,
             training: Vec::new(),
+            half: BTreeSet::new(),
         })
     }
 
@@ -142,10 +146,10 @@ impl Colf {
     pub fn from_bytes(bytes: &[u8], name: &str) -> Result<Colf> {
         let ckpt = checkpoint::from_bytes(bytes, name)?;
         let tensors = ckpt.tensors.into_iter().collect();
-        Ok(
-            Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)?
-                .with_training(ckpt.training),
-        )
+        let mut model = Colf::build(ckpt.config, tensors, Some(ckpt.identity), name)?
+            .with_training(ckpt.training);
+        model.half = ckpt.half;
+        Ok(model)
     }
 
     /// The same model under another config: one that gives every tensor the same name and
@@ -167,7 +171,35 @@ impl Colf {
         let configured = Colf::build(cfg, self.params.clone(), None, "the new config").context(
             "the settings change the model's tensors (grow the model and train it from this one instead)",
         )?;
-        Ok(configured.with_training(self.training.clone()))
+        let mut configured = configured.with_training(self.training.clone());
+        configured.half = self.half.clone();
+        Ok(configured)
+    }
+
+    /// The same model, to be written with every parameter of at least `min_values` values in
+    /// half precision (IEEE f16; the hypernetworks' heads, nearly all of a model's bytes). The
+    /// written file holds the rounded weights and its identity is theirs; a value beyond f16's
+    /// range is refused, naming the tensor.
+    pub fn with_half_storage(mut self, min_values: usize) -> Result<Colf> {
+        self.half = self
+            .params
+            .iter()
+            .filter(|(_, t)| t.elem_count() >= min_values)
+            .map(|(n, _)| n.clone())
+            .collect();
+        for name in &self.half {
+            let t = &self.params[name];
+            let largest = t.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            if largest > f32::from(half::f16::MAX) {
+                bail!("tensor `{name}` has a value of magnitude {largest}, beyond half precision's range");
+            }
+        }
+        Ok(self)
+    }
+
+    /// The parameters written in half precision.
+    pub fn half_tensors(&self) -> &BTreeSet<String> {
+        &self.half
     }
 
     /// The same model with parameter `name` replaced by `value` (same shape), e.g. to set a
@@ -239,6 +271,7 @@ impl Colf {
             identity,
             device,
             training: Vec::new(),
+            half: BTreeSet::new(),
         })
     }
 
@@ -253,7 +286,12 @@ impl Colf {
     /// The file bytes (deterministic) and the identity they carry.
     pub fn to_bytes(&self) -> Result<(Vec<u8>, String)> {
         let host = checkpoint::to_host(&self.params)?;
-        Ok(checkpoint::to_bytes(&self.model.cfg, &host, &self.training))
+        Ok(checkpoint::to_bytes(
+            &self.model.cfg,
+            &host,
+            &self.training,
+            &self.half,
+        ))
     }
 
     /// Writes the model file atomically (temporary file + rename in the target folder).
@@ -327,6 +365,7 @@ impl Colf {
             identity: self.identity,
             device: self.device,
             training: self.training,
+            half: BTreeSet::new(),
         })
     }
 

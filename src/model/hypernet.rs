@@ -107,21 +107,33 @@ impl HyperNet {
 
     /// latents [S, D] → the S light fields' layers.
     pub fn forward(&self, latents: &Tensor) -> Result<Vec<GeneratedLayer>> {
-        let s = latents.dim(0)?;
+        self.from_hidden(&self.hidden(latents)?)
+    }
+
+    /// latents [S, D] → the shared hidden layer's activations [S, H]. Every generated weight
+    /// is an affine function of these: the S light fields lie in an H-dimensional affine
+    /// subspace of the light field's weights (`examples/capacity_fit` measures what that
+    /// costs).
+    pub fn hidden(&self, latents: &Tensor) -> Result<Tensor> {
         let latents = if self.rms_norm {
             let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
             latents.broadcast_div(&rms)?
         } else {
             latents.clone()
         };
-        let hidden = linear_layer(&latents, &self.fc1, Activation::Relu)?;
+        linear_layer(&latents, &self.fc1, Activation::Relu)
+    }
+
+    /// The hidden activations [S, H] → the S light fields' layers.
+    pub fn from_hidden(&self, hidden: &Tensor) -> Result<Vec<GeneratedLayer>> {
+        let s = hidden.dim(0)?;
         self.layers
             .iter()
             .map(|l| {
                 Ok(GeneratedLayer {
-                    weight: linear_layer(&hidden, &l.weight, Activation::Identity)?
+                    weight: linear_layer(hidden, &l.weight, Activation::Identity)?
                         .reshape((s, l.fan_in, l.fan_out))?,
-                    bias: linear_layer(&hidden, &l.bias, Activation::Identity)?
+                    bias: linear_layer(hidden, &l.bias, Activation::Identity)?
                         .reshape((s, 1, l.fan_out))?,
                 })
             })

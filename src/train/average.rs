@@ -39,11 +39,13 @@ pub fn average(models: &[(&str, &Colf)]) -> Result<(Vec<u8>, String)> {
             )
         })
         .collect();
-    // Models of one run share its records; the first model's are kept.
+    // Models of one run share its records; the first model's are kept. The mean is written in
+    // f32 whatever the inputs' storage.
     Ok(checkpoint::to_bytes(
         first.config(),
         &mean,
         first.training(),
+        &Default::default(),
     ))
 }
 

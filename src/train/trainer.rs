@@ -762,8 +762,12 @@ impl Trainer {
     /// The current weights as a model file's bytes, and as host tensors.
     fn model_file(&self) -> Result<(Vec<u8>, HostParams)> {
         let host = checkpoint::to_host(self.colf.parameters())?;
-        let (model_bytes, _) =
-            checkpoint::to_bytes(self.colf.config(), &host, &self.training_records());
+        let (model_bytes, _) = checkpoint::to_bytes(
+            self.colf.config(),
+            &host,
+            &self.training_records(),
+            &Default::default(),
+        );
         Ok((model_bytes, host))
     }
 
@@ -856,7 +860,7 @@ fn load_checkpoint(bytes: &[u8], name: &str) -> Result<SavedRun> {
         }
     }
     let training = history::from_metadata(&file.metadata, name)?;
-    let (model_bytes, _) = checkpoint::to_bytes(&config, &host, &training);
+    let (model_bytes, _) = checkpoint::to_bytes(&config, &host, &training, &Default::default());
     let init_path = file
         .metadata
         .get("options")
