@@ -25,13 +25,14 @@
 use anyhow::{bail, Context, Result};
 use candle_core::{Tensor, Var};
 use colf::dataset::Dataset;
+use colf::encode::refine::Pixels;
 use colf::encode::InputView;
 use colf::evaluate::fit_latents_to_views;
 use colf::metrics::psnr;
 use colf::model::hypernet::GeneratedLayer;
-use colf::model::{Colf, RayBatch, SceneRays, SlotWeights};
+use colf::model::{Colf, SlotWeights};
 use colf::optim::{Adam, AdamConfig};
-use glam::{DMat4, DVec3};
+use glam::DMat4;
 use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 use std::path::PathBuf;
@@ -90,71 +91,26 @@ fn parse_args() -> Result<Args> {
     Ok(a)
 }
 
-/// Every pixel of the fitted views: world rays and colours.
-struct Pixels {
-    origins: Vec<DVec3>,
-    dirs: Vec<DVec3>,
-    rgb: Vec<f32>,
-    /// Each view's pixel count, in order.
-    sizes: Vec<usize>,
-}
-
-impl Pixels {
-    fn gather(views: &[InputView]) -> Pixels {
-        let mut p = Pixels {
-            origins: Vec::new(),
-            dirs: Vec::new(),
-            rgb: Vec::new(),
-            sizes: Vec::new(),
-        };
-        for v in views {
-            p.origins.extend_from_slice(&v.origins);
-            p.dirs.extend_from_slice(&v.dirs);
-            p.rgb.extend_from_slice(&v.image.data);
-            p.sizes.push(v.origins.len());
+/// Mean PSNR over the views of `pixels`, each rendered whole by `fields`.
+fn views_psnr(
+    model: &Colf,
+    pixels: &Pixels,
+    fields: &SlotWeights,
+    frames: &[DMat4],
+) -> Result<f64> {
+    let mut total = 0.0;
+    for &(first, w, h) in &pixels.views {
+        let n = w * h;
+        let mut rgb = Vec::with_capacity(3 * n);
+        for start in (first..first + n).step_by(4096) {
+            let pick: Vec<usize> = (start..(start + 4096).min(first + n)).collect();
+            let (rays, _) = pixels.batch(model, frames, Some(&pick))?;
+            let out = model.model().decode(fields, &rays)?;
+            rgb.extend(out.rgb.flatten_all()?.to_vec1::<f32>()?);
         }
-        p
+        total += psnr(&rgb, &pixels.rgb[3 * first..3 * (first + n)])?;
     }
-
-    fn batch(&self, model: &Colf, frames: &[DMat4], pick: &[usize]) -> Result<(RayBatch, Tensor)> {
-        let o: Vec<DVec3> = pick.iter().map(|&i| self.origins[i]).collect();
-        let d: Vec<DVec3> = pick.iter().map(|&i| self.dirs[i]).collect();
-        let t: Vec<f32> = pick
-            .iter()
-            .flat_map(|&i| self.rgb[3 * i..3 * i + 3].iter().copied())
-            .collect();
-        let rays = RayBatch::new(
-            model.config(),
-            &[SceneRays {
-                slot_to_world: frames,
-                origins: &o,
-                dirs: &d,
-            }],
-            model.device(),
-        )?;
-        Ok((
-            rays,
-            Tensor::from_vec(t, (1, pick.len(), 3), model.device())?,
-        ))
-    }
-
-    /// Mean PSNR over the views, each rendered whole by `fields`.
-    fn psnr(&self, model: &Colf, fields: &SlotWeights, frames: &[DMat4]) -> Result<f64> {
-        let mut first = 0;
-        let mut total = 0.0;
-        for &n in &self.sizes {
-            let mut rgb = Vec::with_capacity(3 * n);
-            for start in (first..first + n).step_by(4096) {
-                let pick: Vec<usize> = (start..(start + 4096).min(first + n)).collect();
-                let (rays, _) = self.batch(model, frames, &pick)?;
-                let out = model.model().decode(fields, &rays)?;
-                rgb.extend(out.rgb.flatten_all()?.to_vec1::<f32>()?);
-            }
-            total += psnr(&rgb, &self.rgb[3 * first..3 * (first + n)])?;
-            first += n;
-        }
-        Ok(total / self.sizes.len() as f64)
-    }
+    Ok(total / pixels.views.len() as f64)
 }
 
 /// The prepared light fields as free parameters: each layer's weight and bias a `Var`.
@@ -197,7 +153,7 @@ fn fit(model: &Colf, pixels: &Pixels, frames: &[DMat4], stage: Stage, args: &Arg
     let n = pixels.origins.len();
     for step in 0..args.free_steps {
         let pick: Vec<usize> = (0..args.rays).map(|_| rng.random_range(0..n)).collect();
-        let (rays, target) = pixels.batch(model, frames, &pick)?;
+        let (rays, target) = pixels.batch(model, frames, Some(&pick))?;
         let out = model.model().decode(&(stage.fields)()?, &rays)?;
         let loss = (&out.rgb - &target)?.sqr()?.mean_all()?;
         let grads = loss.backward()?;
@@ -214,7 +170,7 @@ fn fit(model: &Colf, pixels: &Pixels, frames: &[DMat4], stage: Stage, args: &Arg
             );
         }
     }
-    pixels.psnr(model, &(stage.fields)()?, frames)
+    views_psnr(model, pixels, &(stage.fields)()?, frames)
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -236,7 +192,7 @@ fn main() -> Result<()> {
             .iter()
             .map(|v| InputView::new(&v.frame, &v.image))
             .collect();
-        let pixels = Pixels::gather(&views);
+        let pixels = Pixels::gather(&views.iter().collect::<Vec<_>>());
         let frames: Vec<DMat4> = codes.slots.iter().map(|s| s.slot_to_world).collect();
         let dev = model.device();
         let (k, d) = (codes.slots.len(), codes.dim());
@@ -251,7 +207,7 @@ fn main() -> Result<()> {
         )?;
         let bg = Tensor::from_vec(codes.background.clone(), (1, d), dev)?;
         let prepared = model.model().prepare(&fg, &bg)?;
-        let p_latents = pixels.psnr(&model, &prepared, &frames)?;
+        let p_latents = views_psnr(&model, &pixels, &prepared, &frames)?;
         eprintln!("{}: latents fitted {p_latents:.2} dB", scene.name);
         let lf = model
             .model()

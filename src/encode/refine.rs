@@ -264,17 +264,18 @@ fn check(model: &Colf, views: &[&InputView], opts: &RefineOptions) -> Result<()>
 /// The largest learning rate refinement accepts (the same bound as a model config's).
 pub const MAX_LEARNING_RATE: f64 = crate::model::config::MAX_REFINE_LR;
 
-/// The rays and colours of every pixel of the views, in order.
-struct Pixels {
-    origins: Vec<DVec3>,
-    dirs: Vec<DVec3>,
-    rgb: Vec<f32>,
+/// The rays and colours of every pixel of the views, in order (public for the fitting examples,
+/// `examples/capacity_fit`).
+pub struct Pixels {
+    pub origins: Vec<DVec3>,
+    pub dirs: Vec<DVec3>,
+    pub rgb: Vec<f32>,
     /// Each view's first pixel, width and height (its pixels are row-major from there).
-    views: Vec<(usize, usize, usize)>,
+    pub views: Vec<(usize, usize, usize)>,
 }
 
 impl Pixels {
-    fn gather(views: &[&InputView]) -> Pixels {
+    pub fn gather(views: &[&InputView]) -> Pixels {
         let mut pixels = Pixels {
             origins: Vec::new(),
             dirs: Vec::new(),
@@ -578,7 +579,7 @@ impl Pixels {
     }
 
     /// The encoded rays and target colours [1, R, 3] of the pixels `pick` (all when `None`).
-    fn batch(
+    pub fn batch(
         &self,
         model: &Colf,
         slot_to_world: &[DMat4],
