@@ -960,3 +960,44 @@ fn context_views_are_encoded_together_and_recorded() {
         "no context view 9",
     );
 }
+
+/// The same steps give the same bytes on one thread and on three: the bundled model (whose
+/// hypernetwork heads are large enough for their products to be split among threads), three
+/// training steps, then its encoding of a view with a short refinement.
+#[test]
+fn training_and_encoding_give_the_same_bytes_on_any_thread_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let run = |threads: &str| {
+        let model = dir.path().join(format!("t{threads}.safetensors"));
+        Command::cargo_bin("colf-train")
+            .unwrap()
+            .env("RAYON_NUM_THREADS", threads)
+            .arg("--data")
+            .arg(&data)
+            .arg("--out")
+            .arg(&model)
+            .args(["--init", "models/default.safetensors", "--steps", "3"])
+            .args(["--batch", "2", "--views", "2", "--rays", "64", "--lr", "1e-4"])
+            .assert()
+            .success();
+        let codes = dir.path().join(format!("t{threads}.codes"));
+        let scene = data.join("scene_00000");
+        Command::cargo_bin("colf-encode")
+            .unwrap()
+            .env("RAYON_NUM_THREADS", threads)
+            .arg(scene.join("view_000.png"))
+            .arg("--camera")
+            .arg(scene.join("transforms.json"))
+            .args(["--frame", "0", "--tries", "2", "--refine", "3", "--model"])
+            .arg(&model)
+            .arg("-o")
+            .arg(&codes)
+            .assert()
+            .success();
+        (std::fs::read(model).unwrap(), std::fs::read(codes).unwrap())
+    };
+    let (one, three) = (run("1"), run("3"));
+    assert!(one.0 == three.0, "the trained model depends on the thread count");
+    assert!(one.1 == three.1, "the codes depend on the thread count");
+}

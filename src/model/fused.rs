@@ -105,7 +105,12 @@ fn f32_slice<'a>(storage: &'a CpuStorage, what: &str) -> Result<&'a [f32]> {
 }
 
 fn gemm_parallelism(work: usize) -> gemm::Parallelism {
-    let threads = candle_core::utils::get_num_threads();
+    // rayon's threads, not candle's: colf runs candle's element-wise pool on the caller's thread
+    // alone (`src/alloc.rs`), and the hypernetworks' heads, the largest products of a refinement
+    // step outside the decode kernel, would otherwise run on one core while the other waits.
+    // The gemm splits the output among threads and sums every element in the same order, so the
+    // bytes do not depend on the thread count.
+    let threads = rayon::current_num_threads();
     // Threads only pay off on large products (as candle's own matmul decides).
     if threads > 1 && work > 1 << 16 {
         gemm::Parallelism::Rayon(threads)
@@ -227,16 +232,16 @@ impl CustomOp3 for Dense {
         // constant weights would otherwise cost a gemm each (and a zeroed buffer to add it to).
         let grad_x = if x.track_op() {
             Some(match self.weight {
-                WeightLayout::InOut => g.matmul(&w.t()?)?,
-                WeightLayout::OutIn => g.matmul(w)?,
+                WeightLayout::InOut => product(&g, &w.t()?)?,
+                WeightLayout::OutIn => product(&g, w)?,
             })
         } else {
             None
         };
         let grad_w = if w.track_op() {
             Some(match self.weight {
-                WeightLayout::InOut => x.t()?.matmul(&g)?,
-                WeightLayout::OutIn => g.t()?.matmul(x)?,
+                WeightLayout::InOut => product(&x.t()?, &g)?,
+                WeightLayout::OutIn => product(&g.t()?, x)?,
             })
         } else {
             None
@@ -254,6 +259,87 @@ impl CustomOp3 for Dense {
             None
         };
         Ok((grad_x, grad_w, grad_b))
+    }
+}
+
+/// a·b for the backward: one gemm over the strided views on rayon's threads for 2-D f32
+/// operands on the CPU (candle's matmul would run on its one-thread pool), candle's matmul for
+/// anything else.
+fn product(a: &Tensor, b: &Tensor) -> Result<Tensor> {
+    if a.rank() == 2 && a.device().is_cpu() && a.dtype() == DType::F32 && b.dtype() == DType::F32 {
+        a.apply_op2_no_bwd(b, &Product)
+    } else {
+        a.matmul(b)
+    }
+}
+
+/// a [m, k] · b [k, n], any strides, into a contiguous [m, n].
+struct Product;
+
+impl CustomOp2 for Product {
+    fn name(&self) -> &'static str {
+        "colf-product"
+    }
+
+    fn cpu_fwd(
+        &self,
+        a_storage: &CpuStorage,
+        al: &Layout,
+        b_storage: &CpuStorage,
+        bl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let (&[m, k], &[kb, n]) = (al.dims(), bl.dims()) else {
+            candle_core::bail!(
+                "product: 2-D operands only, got {:?} and {:?}",
+                al.dims(),
+                bl.dims()
+            );
+        };
+        if k != kb {
+            candle_core::bail!(
+                "product: shapes {:?} and {:?} do not fit",
+                al.dims(),
+                bl.dims()
+            );
+        }
+        let (a, b) = (f32_slice(a_storage, "a")?, f32_slice(b_storage, "b")?);
+        let (a_stride, b_stride) = (al.stride(), bl.stride());
+        if k == 0 {
+            return Ok((CpuStorage::F32(vec![0f32; m * n]), Shape::from((m, n))));
+        }
+        let mut y: Vec<f32> = Vec::with_capacity(m * n);
+        // SAFETY: the gemm below writes every element (read_dst = false) before anything reads
+        // it; the weight gradients are megabytes, and a zero fill would be a pass of its own.
+        #[allow(clippy::uninit_vec)]
+        unsafe {
+            y.set_len(m * n);
+        }
+        // SAFETY: the layouts guarantee that [m, k] and [k, n] elements at these strides lie
+        // inside the storages; dst is [m, n] contiguous and not read (read_dst = false).
+        unsafe {
+            gemm::gemm(
+                m,
+                n,
+                k,
+                y.as_mut_ptr(),
+                1,
+                n as isize,
+                false,
+                a.as_ptr().add(al.start_offset()),
+                a_stride[1] as isize,
+                a_stride[0] as isize,
+                b.as_ptr().add(bl.start_offset()),
+                b_stride[1] as isize,
+                b_stride[0] as isize,
+                0.0,
+                1.0,
+                false,
+                false,
+                false,
+                gemm_parallelism(m * n * k),
+            );
+        }
+        Ok((CpuStorage::F32(y), Shape::from((m, n))))
     }
 }
 
@@ -439,6 +525,33 @@ mod tests {
             .unwrap();
         assert!(grads.get(&w_const).is_none() && grads.get(&b_const).is_none());
         assert!(grads.get(x.as_tensor()).is_some());
+    }
+
+    /// The backward's products on rayon's threads: candle's matmul within rounding, for
+    /// transposed views too, and the same bytes on one thread as on three.
+    #[test]
+    fn products_are_the_matmul_and_independent_of_the_thread_count() {
+        let dev = Device::Cpu;
+        let (m, k, n) = (12, 64, 700); // m·k·n above the threshold for threads
+        let a = Tensor::from_vec(values(k * m, 5), (k, m), &dev).unwrap();
+        let b = Tensor::from_vec(values(k * n, 6), (k, n), &dev).unwrap();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let y = product(&a.t().unwrap(), &b).unwrap();
+                y.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+            })
+        };
+        let (one, three) = (run(1), run(3));
+        assert_eq!(one, three);
+        let plain = a.t().unwrap().matmul(&b).unwrap();
+        let fused = Tensor::from_vec(one, (m, n), &dev).unwrap();
+        assert!(max_diff(&fused, &plain) < 1e-4);
+        // Operands that do not fit are refused, not read out of bounds.
+        assert!(product(&a, &b.t().unwrap()).is_err());
     }
 
     #[test]
