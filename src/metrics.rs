@@ -439,6 +439,19 @@ mod tests {
         assert_eq!(fg_ari(&[1, 2], &[0, 0]).unwrap(), None);
     }
 
+    /// A lone object scores all or nothing (scikit-learn agrees): 1 when one label draws it,
+    /// 0 when a single edge pixel of it goes to another label, as when most of it does.
+    #[test]
+    fn fg_ari_of_a_lone_object_is_all_or_nothing() {
+        let gt = [0, 0, 3, 3, 3, 3, 3, 3, 3, 3, 3, 3];
+        let whole = [0, 1, 4, 4, 4, 4, 4, 4, 4, 4, 4, 4];
+        let one_edge_pixel_lost = [0, 0, 0, 4, 4, 4, 4, 4, 4, 4, 4, 4];
+        let half = [0, 0, 4, 4, 4, 4, 4, 0, 0, 0, 0, 0];
+        assert_eq!(fg_ari(&whole, &gt).unwrap(), Some(1.0));
+        assert_eq!(fg_ari(&one_edge_pixel_lost, &gt).unwrap(), Some(0.0));
+        assert_eq!(fg_ari(&half, &gt).unwrap(), Some(0.0));
+    }
+
     #[test]
     fn scores_serialise_infinite_psnr_and_missing_fg_ari_as_null() {
         let s = ImageScores {

@@ -978,7 +978,9 @@ fn training_and_encoding_give_the_same_bytes_on_any_thread_count() {
             .arg("--out")
             .arg(&model)
             .args(["--init", "models/default.safetensors", "--steps", "3"])
-            .args(["--batch", "2", "--views", "2", "--rays", "64", "--lr", "1e-4"])
+            .args([
+                "--batch", "2", "--views", "2", "--rays", "64", "--lr", "1e-4",
+            ])
             .assert()
             .success();
         let codes = dir.path().join(format!("t{threads}.codes"));
@@ -998,6 +1000,9 @@ fn training_and_encoding_give_the_same_bytes_on_any_thread_count() {
         (std::fs::read(model).unwrap(), std::fs::read(codes).unwrap())
     };
     let (one, three) = (run("1"), run("3"));
-    assert!(one.0 == three.0, "the trained model depends on the thread count");
+    assert!(
+        one.0 == three.0,
+        "the trained model depends on the thread count"
+    );
     assert!(one.1 == three.1, "the codes depend on the thread count");
 }
