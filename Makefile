@@ -564,7 +564,7 @@ CITY_SLOTS := --set background_from_nearest_slot=true --set frames_from_residual
 # views)"), so every car has slots of its own and none need draw a car its view does not show.
 CITY_CONTEXT := --context-views 0,1
 # c1 stops at 20,000 steps at 64² (it was to run 60,000): the street views' segmentation was level
-# from step 2,000 to 16,000 (NV-FG-ARI 0.58-0.65; docs/training-log.md, "The city model"), and
+# from step 2,000 to 20,000 (NV-FG-ARI 0.58-0.65; docs/training-log.md, "The city model"), and
 # the test protocol is at 128², where a car has four times the pixels: c2 gets the core sooner.
 model-city: build
 	@mkdir -p $(CITY_RUN)/data
