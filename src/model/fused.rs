@@ -119,6 +119,41 @@ fn gemm_parallelism(work: usize) -> gemm::Parallelism {
     }
 }
 
+/// dst [m, n] (contiguous, not read) = a [m, k] · b [k, n], each operand a pointer with its row
+/// and column strides.
+///
+/// # Safety
+/// The pointers must cover those elements at those strides, and dst m·n writable ones.
+unsafe fn strided_gemm(
+    (m, n, k): (usize, usize, usize),
+    dst: *mut f32,
+    (a, a_rs, a_cs): (*const f32, isize, isize),
+    (b, b_rs, b_cs): (*const f32, isize, isize),
+    parallelism: gemm::Parallelism,
+) {
+    gemm::gemm(
+        m,
+        n,
+        k,
+        dst,
+        1,
+        n as isize,
+        false,
+        a,
+        a_cs,
+        a_rs,
+        b,
+        b_cs,
+        b_rs,
+        0.0,
+        1.0,
+        false,
+        false,
+        false,
+        parallelism,
+    );
+}
+
 struct Dense {
     act: Activation,
     weight: WeightLayout,
@@ -177,25 +212,11 @@ impl CustomOp3 for Dense {
             // SAFETY: the pointers cover [n, k], [k, out] (with w's strides, inside w's
             // storage as its layout guarantees) and [n, out] elements; dst is not read.
             unsafe {
-                gemm::gemm(
-                    n,
-                    out,
-                    k,
+                strided_gemm(
+                    (n, out, k),
                     y.as_mut_ptr().add(s * n * out),
-                    1,
-                    out as isize,
-                    false,
-                    x.as_ptr().add(x_start + s * n * k),
-                    1,
-                    k as isize,
-                    w.as_ptr().add(wl.start_offset() + s * w_batch),
-                    w_cs,
-                    w_rs,
-                    0.0,
-                    1.0,
-                    false,
-                    false,
-                    false,
+                    (x.as_ptr().add(x_start + s * n * k), k as isize, 1),
+                    (w.as_ptr().add(wl.start_offset() + s * w_batch), w_rs, w_cs),
                     parallelism,
                 );
             }
@@ -317,25 +338,19 @@ impl CustomOp2 for Product {
         // SAFETY: the layouts guarantee that [m, k] and [k, n] elements at these strides lie
         // inside the storages; dst is [m, n] contiguous and not read (read_dst = false).
         unsafe {
-            gemm::gemm(
-                m,
-                n,
-                k,
+            strided_gemm(
+                (m, n, k),
                 y.as_mut_ptr(),
-                1,
-                n as isize,
-                false,
-                a.as_ptr().add(al.start_offset()),
-                a_stride[1] as isize,
-                a_stride[0] as isize,
-                b.as_ptr().add(bl.start_offset()),
-                b_stride[1] as isize,
-                b_stride[0] as isize,
-                0.0,
-                1.0,
-                false,
-                false,
-                false,
+                (
+                    a.as_ptr().add(al.start_offset()),
+                    a_stride[0] as isize,
+                    a_stride[1] as isize,
+                ),
+                (
+                    b.as_ptr().add(bl.start_offset()),
+                    b_stride[0] as isize,
+                    b_stride[1] as isize,
+                ),
                 gemm_parallelism(m * n * k),
             );
         }
