@@ -18,7 +18,7 @@
 //! latents: the heads' H directions) or the latent → hidden map (free hidden far above).
 //!
 //! Usage: `capacity_fit --data DIR [--model M] [--scenes 3] [--views 4] [--latent-steps 600]
-//! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads]`
+//! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads] [--no-free-fields]`
 //! (`--lr` for free weights, `--hidden-lr` for free hidden activations: a hidden unit is
 //! about as large as a latent, a weight two orders smaller).
 
@@ -48,6 +48,8 @@ struct Args {
     lr: f64,
     hidden_lr: f64,
     heads: bool,
+    /// Stop after the free hidden stage (`--no-free-fields`).
+    no_free_fields: bool,
 }
 
 fn parse_args() -> Result<Args> {
@@ -62,11 +64,16 @@ fn parse_args() -> Result<Args> {
         lr: 3e-4,
         hidden_lr: 1e-2,
         heads: false,
+        no_free_fields: false,
     };
     let mut argv = std::env::args().skip(1);
     while let Some(flag) = argv.next() {
         if flag == "--heads" {
             a.heads = true;
+            continue;
+        }
+        if flag == "--no-free-fields" {
+            a.no_free_fields = true;
             continue;
         }
         let val = argv
@@ -245,6 +252,14 @@ fn main() -> Result<()> {
         let p_hidden = fit(&model, &pixels, &frames, stage, &args)?;
         eprintln!("{}: free hidden {p_hidden:.2} dB", scene.name);
         hidden.push(p_hidden);
+        if args.no_free_fields {
+            println!(
+                "| {} | {p_latents:.2} | {p_hidden:.2} | — | — |",
+                scene.name
+            );
+            latents.push(p_latents);
+            continue;
+        }
         let (fields, vars) = free_fields(&prepared)?;
         let same_fields = || -> Result<SlotWeights> { Ok(fields.clone()) };
         let stage = Stage {
@@ -292,11 +307,15 @@ fn main() -> Result<()> {
     } else {
         format!("{:.2}", mean(&heads))
     };
+    let free = if free.is_empty() {
+        "—".into()
+    } else {
+        format!("{:.2}", mean(&free))
+    };
     println!(
-        "| mean | {:.2} | {:.2} | {:.2} | {heads} |",
+        "| mean | {:.2} | {:.2} | {free} | {heads} |",
         mean(&latents),
         mean(&hidden),
-        mean(&free)
     );
     Ok(())
 }

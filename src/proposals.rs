@@ -406,6 +406,9 @@ pub struct ProposalScore {
     /// Share of the ground truth's object pixels the proposals call background (they teach the
     /// background to take objects).
     pub objects_called_background: f64,
+    /// Share of the ground truth's object pixels the proposals leave [`UNSURE`] (to the colour
+    /// loss alone).
+    pub objects_unsure: f64,
     /// Share of the instance pixels that are background in the ground truth (shadows, floor).
     pub instances_on_background: f64,
     /// Share of the view marked [`UNSURE`].
@@ -449,6 +452,10 @@ pub fn score(ids: &[u8], truth: &[u8]) -> anyhow::Result<ProposalScore> {
         fg_ari_on_instances,
         objects_called_background: share(
             pairs().filter(|&(&p, &t)| t != 0 && p == 0).count(),
+            objects,
+        ),
+        objects_unsure: share(
+            pairs().filter(|&(&p, &t)| t != 0 && p == UNSURE).count(),
             objects,
         ),
         instances_on_background: share(
@@ -698,6 +705,45 @@ fn components_8(
     out
 }
 
+/// The instance an [`UNSURE`] pixel `p` of a w×h proposal map is counted to when the mask
+/// losses claim the proposals' soft edges (`colf-train --mask-claim`): the nearest instance
+/// pixel within `radius` pixels (Chebyshev distance; within one distance the first in row-major
+/// order). None for a pixel that is not unsure or has no instance that near. An edge ring is
+/// mostly the object's own antialiased outline, and an object's whole outline is what FG-ARI
+/// scores (all or nothing for a lone object, `metrics::fg_ari`).
+pub fn claimed_instance(ids: &[u8], w: usize, h: usize, p: usize, radius: usize) -> Option<u8> {
+    if ids[p] != UNSURE {
+        return None;
+    }
+    let (x, y) = ((p % w) as isize, (p / w) as isize);
+    for r in 1..=radius as isize {
+        for yy in (y - r).max(0)..=(y + r).min(h as isize - 1) {
+            // Only the pixels at Chebyshev distance exactly r: the square's rows at ±r whole,
+            // the rows between only at their two ends.
+            let whole_row = (yy - y).abs() == r;
+            let step = if whole_row { 1 } else { 2 * r as usize };
+            for xx in ((x - r)..=(x + r)).step_by(step) {
+                if xx < 0 || xx >= w as isize {
+                    continue;
+                }
+                let id = ids[yy as usize * w + xx as usize];
+                if is_instance(id) {
+                    return Some(id);
+                }
+            }
+        }
+    }
+    None
+}
+
+/// `ids` with every [`UNSURE`] pixel within `radius` of an instance counted to it
+/// ([`claimed_instance`]).
+pub fn claim_edges(ids: &[u8], w: usize, h: usize, radius: usize) -> Vec<u8> {
+    (0..ids.len())
+        .map(|p| claimed_instance(ids, w, h, p, radius).unwrap_or(ids[p]))
+        .collect()
+}
+
 /// Whether `hit` holds for some pixel within `radius` pixels (Chebyshev distance) of pixel `p`
 /// of a w×h grid, `p` included.
 pub fn any_within(
@@ -939,11 +985,41 @@ mod tests {
             "one instance over two objects"
         );
         assert!((s.objects_called_background - 0.2).abs() < 1e-12);
+        assert_eq!(s.objects_unsure, 0.0);
         assert!((s.instances_on_background - 0.2).abs() < 1e-12);
         assert!((s.unsure - 0.125).abs() < 1e-12);
         let perfect = score(&truth, &truth).unwrap();
         assert_eq!(perfect.fg_ari, Some(1.0));
         assert!(score(&ids, &truth[..3]).is_err());
+    }
+
+    /// An unsure pixel takes the nearest instance within the radius; background, instances and
+    /// far unsure pixels keep their ids.
+    #[test]
+    fn unsure_edges_are_claimed_by_the_nearest_instance() {
+        // 5×3: instance 1 at (0, 1), instance 2 at (4, 1); unsure pixels between and a row of
+        // background and unsure pixels above.
+        #[rustfmt::skip]
+        let ids = [
+            0, UNSURE, 0, UNSURE, UNSURE,
+            1, UNSURE, UNSURE, UNSURE, 2,
+            0, 0, 0, 0, 0,
+        ];
+        let claimed = claim_edges(&ids, 5, 3, 1);
+        #[rustfmt::skip]
+        let expected = [
+            0, 1, 0, 2, 2,
+            1, 1, UNSURE, 2, 2,
+            0, 0, 0, 0, 0,
+        ];
+        assert_eq!(claimed, expected);
+        // Within two pixels the middle one is claimed too: both instances are 2 away, and the
+        // first in row-major order (same row: the left one) wins.
+        assert_eq!(claimed_instance(&ids, 5, 3, 7, 2), Some(1));
+        assert_eq!(claim_edges(&ids, 5, 3, 0), ids.to_vec());
+        // Corners of the grid: no index leaves it.
+        let lone = [UNSURE; 4];
+        assert_eq!(claim_edges(&lone, 2, 2, 3), lone.to_vec());
     }
 
     #[test]

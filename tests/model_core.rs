@@ -298,6 +298,60 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
     assert_gradients_reach_every_parameter(replaced);
 }
 
+/// Per-layer hypernetwork hidden layers (`hypernet_per_layer`): grown from a shared one they
+/// render the same, each layer then has hidden units of its own that train, they widen like a
+/// shared one, and they cannot be merged back.
+#[test]
+fn per_layer_hypernetwork_hidden_layers_grow_from_a_shared_one() {
+    let cfg = tiny();
+    let shared = Colf::init(&cfg, 3).unwrap();
+    let per_layer_cfg = cfg
+        .with_overrides(&["hypernet_per_layer=true".to_string()])
+        .unwrap();
+    let split = shared.reconfigured(&per_layer_cfg, 4, "m").unwrap();
+    let layers = cfg.lfn_dims().len() - 1;
+    for prefix in ["hypernet_fg.", "hypernet_bg."] {
+        assert!(!split
+            .parameters()
+            .contains_key(&format!("{prefix}fc1.weight")));
+        for l in 0..layers {
+            let name = format!("{prefix}layers.{l}.fc1.weight");
+            let copy = &split.parameters()[&name];
+            let original = &shared.parameters()[&format!("{prefix}fc1.weight")];
+            assert_eq!(relative_gap(original, copy), 0.0, "{name}");
+        }
+    }
+    let reference = rendered(&shared);
+    let widened_cfg = per_layer_cfg
+        .with_overrides(&[format!("hypernet_hidden={}", 2 * cfg.hypernet_hidden)])
+        .unwrap();
+    let widened = split.reconfigured(&widened_cfg, 5, "m").unwrap();
+    for model in [&split, &widened] {
+        for (a, b) in reference.iter().zip(&rendered(model)) {
+            let gap = relative_gap(a, b);
+            assert!(gap < 1e-6, "renders changed: {gap}");
+        }
+    }
+    assert_eq!(
+        widened.parameters()["hypernet_fg.layers.1.fc1.weight"].dims(),
+        &[2 * cfg.hypernet_hidden, cfg.slot_dim]
+    );
+    assert_eq!(
+        widened.parameters()["hypernet_fg.layers.1.weight.weight"]
+            .dim(1)
+            .unwrap(),
+        2 * cfg.hypernet_hidden
+    );
+    // Every layer's own hidden layer is trained (and a fresh per-layer model's too).
+    let grads = assert_gradients_reach_every_parameter(split);
+    assert!(grads
+        .iter()
+        .any(|(n, _)| n == "hypernet_fg.layers.2.fc1.bias"));
+    assert_gradients_reach_every_parameter(Colf::init(&per_layer_cfg, 6).unwrap());
+    let err = widened.reconfigured(&cfg, 4, "w").err().unwrap();
+    assert!(err.to_string().starts_with("w: "), "{err}");
+}
+
 #[test]
 fn a_model_grown_to_the_paper_decoders_shape_renders_the_same_and_trains_it_all() {
     // The bundled small decoder grown to the `paper` preset's shape (wider light fields and

@@ -671,6 +671,32 @@ fn proposals_stand_in_for_masks_and_no_mask_file_is_read() {
     let run = &info(&against)["training"][0];
     assert_eq!(run["proposals"], true);
     assert_eq!(run["masks_in_data"], false);
+    assert!(run.get("mask_claim").is_none(), "not written when off");
+
+    // Claiming the unsure edges: fewer unsure pixels, the claim recorded, and refused without
+    // proposals.
+    let claimed = |px: &str| {
+        json_of(
+            common::bin("colf-train")
+                .args(["propose", "--data"])
+                .arg(&data)
+                .args(["--claim", px]),
+        )
+    };
+    let (plain, wide) = (claimed("0"), claimed("2"));
+    let share = |s: &serde_json::Value, key: &str| s[key].as_f64().unwrap();
+    assert!(share(&plain, "unsure") > 0.0, "{plain}");
+    assert!(share(&wide, "unsure") < share(&plain, "unsure"), "{wide}");
+    assert!(share(&wide, "objects_unsure") <= share(&plain, "objects_unsure"));
+    let with_claim = dir.path().join("c.safetensors");
+    train(
+        &unlabelled,
+        &with_claim,
+        2,
+        &["--proposals", "--mask-weight", "0.1", "--mask-claim", "1"],
+    );
+    assert_eq!(info(&with_claim)["training"][0]["mask_claim"], 1);
+    refused(&data, dir.path(), &["--mask-claim", "1"], "--mask-claim");
     // A background that reads the image is no known background: one error line.
     common::fails_with(
         common::bin("colf-train")

@@ -160,6 +160,14 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0, value_name = "PX")]
     pub mask_margin: usize,
 
+    /// With --proposals: the mask loss on rays counts an unsure proposal pixel within PX pixels
+    /// of an instance to that instance (the nearest) instead of leaving it to the colour loss.
+    /// The proposals leave a ring around each instance unsure, and that ring is mostly the
+    /// object's own soft outline: a lone object is scored all or nothing by FG-ARI, so its slot
+    /// must win that outline too (0 = off; `colf-train propose --claim` scores the result).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub mask_claim: usize,
+
     /// Mask losses also ignore background pixels darker than their view's floor by more than D
     /// (sRGB brightness in [0, 1]; the floor level is the median brightness of the view's
     /// background pixels): the hard shadows objects cast, which, like --mask-margin's band, are
@@ -180,7 +188,8 @@ pub struct RunArgs {
     /// what it computes (`--set static_background=true` on a zero-background model, larger
     /// `hypernet_hidden`, `lfn_hidden`, `lfn_features`, `head_hidden`, `head_hidden_layers`,
     /// `compositor_hidden` or `compositor_hidden_layers` — e.g. the small decoder grown to the
-    /// paper's —, `--set zero_background=false` for a background that reads the image; new
+    /// paper's —, `--set hypernet_per_layer=true` for a hidden layer per light-field layer in
+    /// each hypernetwork, `--set zero_background=false` for a background that reads the image; new
     /// weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,
@@ -288,7 +297,7 @@ pub struct InfoArgs {
 #[derive(Args, Debug)]
 #[command(
     about = "Compute the object proposals --proposals trains on, write them and score them",
-    long_about = "Compute, for every view of the first --scenes scenes of DIR, the object proposals `colf-train --proposals` uses in place of masks: a smooth floor (a cubic polynomial in the pixel coordinates, fitted by trimmed least squares) is fitted to the view; up to three walls (large regions of one chromaticity far from the floor and touching the border, each at least 5 % of the view) get quadratic surfaces of their own and the floor is refitted without them; pixels farther from their surface than 0.08 in some channel, and than 2.5 times the surface's own grain (the 75th percentile of its residuals: a wooden or tiled floor), are candidates, and those between the two are unsure unless their chromaticity is farther from the surface's than 4 times the surface's own chromaticity spread (an object of another hue on the grain); a candidate that is a uniformly darkened or brightened copy of the floor is lighting (a shadow, a bright spot); the other candidates are grouped into 8-connected instances whose neighbouring pixels have nearly the same chromaticity (so touching objects of different colours stay apart), fragments under 0.2 % of the view join the neighbour they share the longest border with, and the instances are numbered 1, 2, ... from the largest; lighting, instances under 0.1 % of the view and a one-pixel ring around each instance are unsure (255), which the mask losses leave to the colour loss. No mask file is read to make them. With --out, each view's proposals are written as an 8-bit grey PNG, OUT/SCENE/STEM.proposal.png (0 background, 1... instances, 255 unsure). Where the data has masks, they are then read to score the proposals: one JSON object on stdout with the means over views of fg_ari (the ARI over ground-truth object pixels, background and unsure counting as labels), fg_ari_on_instances (over the object pixels the instances cover), objects_called_background, instances_on_background and unsure (shares of pixels), and instances (per view).",
+    long_about = "Compute, for every view of the first --scenes scenes of DIR, the object proposals `colf-train --proposals` uses in place of masks: a smooth floor (a cubic polynomial in the pixel coordinates, fitted by trimmed least squares) is fitted to the view; up to three walls (large regions of one chromaticity far from the floor and touching the border, each at least 5 % of the view) get quadratic surfaces of their own and the floor is refitted without them; pixels farther from their surface than 0.08 in some channel, and than 2.5 times the surface's own grain (the 75th percentile of its residuals: a wooden or tiled floor), are candidates, and those between the two are unsure unless their chromaticity is farther from the surface's than 4 times the surface's own chromaticity spread (an object of another hue on the grain); a candidate that is a uniformly darkened or brightened copy of the floor is lighting (a shadow, a bright spot); the other candidates are grouped into 8-connected instances whose neighbouring pixels have nearly the same chromaticity (so touching objects of different colours stay apart), fragments under 0.2 % of the view join the neighbour they share the longest border with, and the instances are numbered 1, 2, ... from the largest; lighting, instances under 0.1 % of the view and a one-pixel ring around each instance are unsure (255), which the mask losses leave to the colour loss. No mask file is read to make them. With --out, each view's proposals are written as an 8-bit grey PNG, OUT/SCENE/STEM.proposal.png (0 background, 1... instances, 255 unsure). Where the data has masks, they are then read to score the proposals: one JSON object on stdout with the means over views of fg_ari (the ARI over ground-truth object pixels, background and unsure counting as labels), fg_ari_on_instances (over the object pixels the instances cover), objects_called_background, objects_unsure, instances_on_background and unsure (shares of pixels), and instances (per view).",
     after_help = "Examples:\n  colf-train propose --data data/train --scenes 25\n  \
 colf-train propose --data data/train --scenes 4 --out proposals/"
 )]
@@ -308,6 +317,11 @@ pub struct ProposeArgs {
     /// Propose against MODEL's background render instead (as `colf-train --proposals-against`).
     #[arg(long, value_name = "MODEL")]
     pub against: Option<std::path::PathBuf>,
+
+    /// Count unsure pixels within PX pixels of an instance to it, as the mask losses of
+    /// `colf-train --mask-claim PX` do (written and scored that way).
+    #[arg(long, default_value_t = 0, value_name = "PX")]
+    pub claim: usize,
 }
 
 /// Runs `colf-train propose`.
@@ -329,6 +343,8 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
             // one, only scores them.
             let ids =
                 crate::train::known_background::view_proposals(known.as_ref(), view, &params)?;
+            let (w, h) = (view.image.w as usize, view.image.h as usize);
+            let ids = crate::proposals::claim_edges(&ids, w, h, args.claim);
             instances += ids
                 .iter()
                 .filter(|&&id| is_instance(id))
@@ -365,6 +381,7 @@ pub fn run_propose(args: &ProposeArgs) -> anyhow::Result<()> {
         "fg_ari": mean(&|s| s.fg_ari),
         "fg_ari_on_instances": mean(&|s| s.fg_ari_on_instances),
         "objects_called_background": mean(&|s| Some(s.objects_called_background)),
+        "objects_unsure": mean(&|s| Some(s.objects_unsure)),
         "instances_on_background": mean(&|s| Some(s.instances_on_background)),
         "unsure": mean(&|s| Some(s.unsure)),
     });
@@ -626,6 +643,7 @@ impl RunArgs {
             attention_mask_weight: args.attention_mask_weight,
             object_fraction: args.object_fraction,
             mask_margin: args.mask_margin,
+            mask_claim: args.mask_claim,
             mask_shadow_depth: args.mask_shadow_depth,
             zero_background: args.zero_background,
             config_overrides: args.config_overrides.clone(),

@@ -91,6 +91,13 @@ pub struct Config {
     /// Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub hypernet_rms_norm: bool,
+    /// Give each light-field layer's heads a hidden layer of their own (`layers.{l}.fc1.`)
+    /// instead of one shared by all (`fc1.`), as SIREN's and LFN's hypernetworks give each
+    /// generated tensor its own MLP: a slot's light field then ranges over an affine subspace of
+    /// L·H dimensions instead of H (L light-field layers), for the same head parameters and no
+    /// more work per ray. Absent in older files (= false).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub hypernet_per_layer: bool,
     /// Place each foreground slot's frame where the slot attends in the image (see
     /// `frames.rs`), instead of at the camera. Absent in older files (= false).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
@@ -327,6 +334,7 @@ impl Config {
             static_background: false,
             background_reader: false,
             hypernet_rms_norm: true,
+            hypernet_per_layer: false,
             attention_frames: false,
             fg_locality: 0.0,
             background_from_nearest_slot: false,

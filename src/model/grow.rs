@@ -9,6 +9,8 @@
 //!   new scenes (this growth changes renders: the background starts untrained);
 //! - a wider `hypernet_hidden`: each hypernetwork's new hidden units get fresh input weights and
 //!   zero output weights;
+//! - `hypernet_per_layer`: each light-field layer's heads get their own copy of the shared
+//!   hidden layer (the same light fields, each layer's hidden units then free to move);
 //! - a wider `lfn_hidden`: every light field's new hidden units get fresh incoming weights and
 //!   biases and zero outgoing weights (in a hypernetwork, the heads' rows that generate them).
 //! - an image-dependent background (`zero_background` turned off): the background
@@ -155,6 +157,13 @@ fn grow_rest(
         for prefix in ["hypernet_fg.", "hypernet_bg."] {
             widen_hypernet(&mut out, prefix, cfg.hypernet_hidden, seed)?;
         }
+    }
+    if cfg.hypernet_per_layer && !old.hypernet_per_layer {
+        for prefix in ["hypernet_fg.", "hypernet_bg."] {
+            split_hypernet_hidden(&mut out, prefix);
+        }
+    } else if old.hypernet_per_layer && !cfg.hypernet_per_layer {
+        bail!("{name}: per-layer hypernetwork hidden layers cannot be merged back into one");
     }
     if cfg.lfn_dims() != old.lfn_dims() {
         if cfg.lfn_hidden_layers != old.lfn_hidden_layers
@@ -382,27 +391,45 @@ fn fresh_like(like: &Tensor, shape: &[usize], seed: u64, name: &str) -> Result<T
     Ok(Tensor::from_vec(drawn, shape, &Device::Cpu)?)
 }
 
-/// Widens the hidden layer of the hypernetwork under `prefix` (if present) to `hidden` units.
+/// Widens the hidden layers of the hypernetwork under `prefix` (if present) to `hidden` units:
+/// its shared `fc1`, or each layer's own (`Config::hypernet_per_layer`).
 fn widen_hypernet(
     tensors: &mut BTreeMap<String, Tensor>,
     prefix: &str,
     hidden: usize,
     seed: u64,
 ) -> Result<()> {
-    let fc1_weight = format!("{prefix}fc1.weight");
-    let fc1_bias = format!("{prefix}fc1.bias");
-    let Some(weight) = tensors.get(&fc1_weight).cloned() else {
-        return Ok(());
-    };
+    if tensors.contains_key(&format!("{prefix}fc1.weight")) {
+        return widen_hidden(tensors, &format!("{prefix}fc1."), prefix, hidden, seed);
+    }
+    let mut l = 0;
+    while tensors.contains_key(&format!("{prefix}layers.{l}.fc1.weight")) {
+        let layer = format!("{prefix}layers.{l}.");
+        widen_hidden(tensors, &format!("{layer}fc1."), &layer, hidden, seed)?;
+        l += 1;
+    }
+    Ok(())
+}
+
+/// Widens the hidden layer `fc1` (`{fc1}weight`, `{fc1}bias`) to `hidden` units: fresh input
+/// weights for the new units, and zero columns for them in every head under `heads`.
+fn widen_hidden(
+    tensors: &mut BTreeMap<String, Tensor>,
+    fc1: &str,
+    heads: &str,
+    hidden: usize,
+    seed: u64,
+) -> Result<()> {
+    let (fc1_weight, fc1_bias) = (format!("{fc1}weight"), format!("{fc1}bias"));
+    let weight = tensors[&fc1_weight].clone();
     let (old_hidden, inputs) = weight.dims2()?;
     let extra = hidden - old_hidden;
     let new_rows = fresh_like(&weight, &[extra, inputs], seed, &fc1_weight)?;
     tensors.insert(fc1_weight, Tensor::cat(&[&weight, &new_rows], 0)?);
     let bias = tensors[&fc1_bias].clone();
     let new_bias = fresh_like(&bias, &[extra], seed, &fc1_bias)?;
-    tensors.insert(fc1_bias.clone(), Tensor::cat(&[&bias, &new_bias], 0)?);
-    // Every head reads the hidden layer: zero columns for the new units.
-    for key in head_names(tensors, prefix) {
+    tensors.insert(fc1_bias, Tensor::cat(&[&bias, &new_bias], 0)?);
+    for key in head_names(tensors, heads) {
         if key.ends_with(".weight") {
             let head = tensors[&key].clone();
             let zeros = Tensor::zeros((head.dim(0)?, extra), DType::F32, &Device::Cpu)?;
@@ -412,13 +439,37 @@ fn widen_hypernet(
     Ok(())
 }
 
-/// The names of a hypernetwork's heads: `{prefix}layers.{l}.{weight,bias}.{weight,bias}`.
+/// Gives each light-field layer of the hypernetwork under `prefix` (if present) its own copy
+/// of the shared hidden layer (`Config::hypernet_per_layer`): the same light fields at first,
+/// then each layer's hidden units free to learn their own directions.
+fn split_hypernet_hidden(tensors: &mut BTreeMap<String, Tensor>, prefix: &str) {
+    let shared = format!("{prefix}fc1.");
+    let (Some(weight), Some(bias)) = (
+        tensors.remove(&format!("{shared}weight")),
+        tensors.remove(&format!("{shared}bias")),
+    ) else {
+        return;
+    };
+    let mut l = 0;
+    while tensors.contains_key(&format!("{prefix}layers.{l}.weight.weight")) {
+        tensors.insert(format!("{prefix}layers.{l}.fc1.weight"), weight.clone());
+        tensors.insert(format!("{prefix}layers.{l}.fc1.bias"), bias.clone());
+        l += 1;
+    }
+}
+
+/// The names of the heads under `prefix` (a hypernetwork's, or one layer's):
+/// `…layers.{l}.{weight,bias}.{weight,bias}`, not the per-layer hidden layers (`…fc1.`).
 fn head_names(tensors: &BTreeMap<String, Tensor>, prefix: &str) -> Vec<String> {
     tensors
         .keys()
         .filter(|k| {
-            k.strip_prefix(prefix)
-                .is_some_and(|rest| rest.starts_with("layers."))
+            k.strip_prefix(prefix).is_some_and(|rest| {
+                (rest.starts_with("layers.")
+                    || rest.starts_with("weight.")
+                    || rest.starts_with("bias."))
+                    && !rest.contains("fc1.")
+            })
         })
         .cloned()
         .collect()

@@ -76,8 +76,16 @@ pub struct TrainingRun {
     pub losses: BTreeMap<String, f64>,
     pub object_fraction: f64,
     pub mask_margin: usize,
+    /// The mask losses counted unsure proposal pixels within this many pixels of an instance
+    /// to it (`--mask-claim`); not written when 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub mask_claim: usize,
     pub mask_shadow_depth: f64,
     pub seed: u64,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Parses the `training` metadata of `name`. (Numbers past f64, such as `1e999`, are refused by
@@ -232,6 +240,7 @@ mod tests {
             losses: BTreeMap::from([("l2".into(), 1.0), ("latent".into(), 1e-4)]),
             object_fraction: 0.0,
             mask_margin: 0,
+            mask_claim: 0,
             mask_shadow_depth: 0.0,
             seed: 0,
         }

@@ -8,6 +8,12 @@
 //! (H → o). Tensor names (prefix `hypernet_fg.` / `hypernet_bg.`): `fc1.{weight,bias}`,
 //! `layers.{l}.weight.{weight,bias}`, `layers.{l}.bias.{weight,bias}`.
 //!
+//! With `Config::hypernet_per_layer`, each layer's two heads read a hidden layer of their own,
+//! `layers.{l}.fc1.{weight,bias}` (D → H, ReLU), in place of the shared `fc1`: every generated
+//! weight is still an affine function of H hidden units, but each layer has its own H, so the
+//! light fields a hypernetwork can make span L·H dimensions (SIREN's and LFN's hypernetworks
+//! give each generated tensor its own MLP).
+//!
 //! Initialisation: the generated weights should have a Kaiming-like scale whatever the latent.
 //! Each generated weight is `A·h + c`; `c` (the head's bias) is drawn uniformly with variance
 //! ¾·σ², and `A` uniformly so that `A·h` has variance ¼·σ² for hidden activations h of a
@@ -47,7 +53,9 @@ fn linear_layer(x: &Tensor, layer: &Linear, act: Activation) -> Result<Tensor> {
 /// A hypernetwork for light fields of widths `cfg.lfn_dims()`.
 #[derive(Clone, Debug)]
 pub struct HyperNet {
-    fc1: Linear,
+    /// The hidden layers: one shared by every layer's heads, or one per light-field layer
+    /// (`Config::hypernet_per_layer`).
+    fc1: Vec<Linear>,
     layers: Vec<LayerHeads>,
     /// See `Config::hypernet_rms_norm`.
     rms_norm: bool,
@@ -74,7 +82,13 @@ impl HyperNet {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<HyperNet> {
         let h = cfg.hypernet_hidden;
         let dims = cfg.lfn_dims();
-        let fc1 = linear(cfg.slot_dim, h, vb.pp("fc1"))?;
+        let fc1 = if cfg.hypernet_per_layer {
+            (0..dims.len() - 1)
+                .map(|l| linear(cfg.slot_dim, h, vb.pp(format!("layers.{l}.fc1"))))
+                .collect::<Result<_>>()?
+        } else {
+            vec![linear(cfg.slot_dim, h, vb.pp("fc1"))?]
+        };
         let mut layers = Vec::new();
         for l in 0..dims.len() - 1 {
             let (fan_in, fan_out) = (dims[l], dims[l + 1]);
@@ -110,8 +124,9 @@ impl HyperNet {
         self.from_hidden(&self.hidden(latents)?)
     }
 
-    /// latents [S, D] → the shared hidden layer's activations [S, H]. Every generated weight
-    /// is an affine function of these: the S light fields lie in an H-dimensional affine
+    /// latents [S, D] → the hidden layers' activations [S, H], or [S, L·H] with one hidden
+    /// layer per light-field layer (layer l's in columns l·H…). Every generated weight is an
+    /// affine function of these: the S light fields lie in an H- (or L·H-) dimensional affine
     /// subspace of the light field's weights (`examples/capacity_fit` measures what that
     /// costs).
     pub fn hidden(&self, latents: &Tensor) -> Result<Tensor> {
@@ -121,19 +136,34 @@ impl HyperNet {
         } else {
             latents.clone()
         };
-        linear_layer(&latents, &self.fc1, Activation::Relu)
+        let hidden = self
+            .fc1
+            .iter()
+            .map(|fc1| linear_layer(&latents, fc1, Activation::Relu))
+            .collect::<Result<Vec<_>>>()?;
+        match hidden.as_slice() {
+            [shared] => Ok(shared.clone()),
+            per_layer => Tensor::cat(per_layer, 1),
+        }
     }
 
-    /// The hidden activations [S, H] → the S light fields' layers.
+    /// The hidden activations ([`HyperNet::hidden`]'s shape) → the S light fields' layers.
     pub fn from_hidden(&self, hidden: &Tensor) -> Result<Vec<GeneratedLayer>> {
         let s = hidden.dim(0)?;
+        let width = hidden.dim(1)? / self.fc1.len();
         self.layers
             .iter()
-            .map(|l| {
+            .enumerate()
+            .map(|(i, l)| {
+                let own = if self.fc1.len() == 1 {
+                    hidden.clone()
+                } else {
+                    hidden.narrow(1, i * width, width)?.contiguous()?
+                };
                 Ok(GeneratedLayer {
-                    weight: linear_layer(hidden, &l.weight, Activation::Identity)?
+                    weight: linear_layer(&own, &l.weight, Activation::Identity)?
                         .reshape((s, l.fan_in, l.fan_out))?,
-                    bias: linear_layer(hidden, &l.bias, Activation::Identity)?
+                    bias: linear_layer(&own, &l.bias, Activation::Identity)?
                         .reshape((s, 1, l.fan_out))?,
                 })
             })

@@ -5,7 +5,7 @@
 //! given need not learn 3D).
 
 use crate::dataset::SceneData;
-use crate::proposals::{any_within, is_instance, UNSURE};
+use crate::proposals::{any_within, claimed_instance, is_instance, UNSURE};
 use anyhow::{bail, Result};
 use glam::DVec3;
 use rand::rngs::StdRng;
@@ -24,6 +24,9 @@ pub struct RaySampling {
     pub object_fraction: f64,
     /// Background pixels within this many pixels of an object are marked `near_object`.
     pub mask_margin: usize,
+    /// An unsure proposal pixel within this many pixels of an instance counts as that
+    /// instance ([`claimed_instance`]; 0 = off).
+    pub mask_claim: usize,
     /// With > 0, background pixels darker than their view's floor by more than this (sRGB
     /// brightness in [0, 1]) are marked `near_object` too: the shadows objects cast.
     pub shadow_depth: f64,
@@ -217,11 +220,18 @@ pub fn sample_scene(
             sample
                 .targets
                 .extend_from_slice(&view.image.data[3 * p..3 * p + 3]);
-            sample.ids.push(view.mask.as_ref().map_or(0, |m| m[p]));
+            let claimed = view
+                .mask
+                .as_ref()
+                .and_then(|m| claimed_instance(m, w, h, p, sampling.mask_claim));
+            sample
+                .ids
+                .push(claimed.unwrap_or_else(|| view.mask.as_ref().map_or(0, |m| m[p])));
             sample.near_object.push(
-                exclusion
-                    .as_ref()
-                    .is_some_and(|e| e.leaves(i as usize, j as usize)),
+                claimed.is_none()
+                    && exclusion
+                        .as_ref()
+                        .is_some_and(|e| e.leaves(i as usize, j as usize)),
             );
         }
     }
@@ -272,6 +282,7 @@ mod tests {
             rays_per_view: 3,
             object_fraction: 0.0,
             mask_margin: 0,
+            mask_claim: 0,
             shadow_depth: 0.0,
         };
         for seed in 0..8 {
@@ -307,6 +318,53 @@ mod tests {
             error.contains("scene s") && error.contains("context view 5"),
             "{error}"
         );
+    }
+
+    /// With a claim radius, rays on an unsure pixel next to an instance carry its id and are
+    /// supervised; without, they are left to the colour loss.
+    #[test]
+    fn claimed_edges_are_supervised_as_their_instance() {
+        let mut scene = scene_of(1);
+        scene.views[0].mask = Some(vec![0, 1, UNSURE, UNSURE]);
+        scene.views[0].image = crate::image_io::RgbImage32 {
+            w: 4,
+            h: 1,
+            data: vec![0.5; 12],
+        };
+        scene.views[0].frame = crate::encode::default_camera(4, 1);
+        let rays = |claim| {
+            let sampling = RaySampling {
+                views: 1,
+                context_views: vec![0],
+                rays_per_view: 64,
+                object_fraction: 0.0,
+                mask_margin: 0,
+                mask_claim: claim,
+                shadow_depth: 0.0,
+            };
+            let mut rng = StdRng::seed_from_u64(5);
+            let sample = sample_scene(&scene, &sampling, &mut rng).unwrap();
+            // The pixel each ray went through, from its direction's x (left to right).
+            let mut xs: Vec<f64> = sample.dirs.iter().map(|d| d.x).collect();
+            xs.sort_by(f64::total_cmp);
+            xs.dedup();
+            assert_eq!(xs.len(), 4, "every pixel drawn");
+            let mut by_pixel = std::collections::BTreeMap::new();
+            for ((d, &id), &near) in sample.dirs.iter().zip(&sample.ids).zip(&sample.near_object) {
+                let x = xs.iter().position(|&v| v == d.x).unwrap();
+                by_pixel.insert(x, (id, near));
+            }
+            by_pixel.into_values().collect::<Vec<_>>()
+        };
+        assert_eq!(
+            rays(0),
+            [(0, false), (1, false), (UNSURE, true), (UNSURE, true)]
+        );
+        assert_eq!(
+            rays(1),
+            [(0, false), (1, false), (1, false), (UNSURE, true)]
+        );
+        assert_eq!(rays(2), [(0, false), (1, false), (1, false), (1, false)]);
     }
 
     #[test]

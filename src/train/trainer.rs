@@ -88,6 +88,10 @@ pub struct TrainOptions {
     /// the image cannot draw it, so only the object's slot can.
     #[serde(default)]
     pub mask_margin: usize,
+    /// The mask losses on rays count an unsure proposal pixel within this many pixels of an
+    /// instance to that instance (`proposals::claimed_instance`): its soft edge (0 = off).
+    #[serde(default)]
+    pub mask_claim: usize,
     /// Mask losses also ignore background pixels darker than their view's floor by more than
     /// this (0 = off; see `batch::shadow_threshold`).
     #[serde(default)]
@@ -198,6 +202,9 @@ impl TrainOptions {
         }
         if self.proposals_against.is_some() && !self.proposals {
             bail!("proposals against a known background need proposals");
+        }
+        if self.mask_claim > 0 && !self.proposals {
+            bail!("claiming the proposals' unsure edges (--mask-claim) needs --proposals");
         }
         Ok(())
     }
@@ -353,7 +360,7 @@ impl Trainer {
                     } else {
                         let cfg = colf.config().with_overrides(&opts.config_overrides)?;
                         colf.reconfigured(&cfg, opts.seed, &p.display().to_string())
-                            .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden or lfn_hidden)")?
+                            .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden or lfn_hidden, hypernet_per_layer)")?
                     }
                 }
                 None => {
@@ -503,6 +510,7 @@ impl Trainer {
             rays_per_view: opts.rays_per_view,
             object_fraction: opts.object_fraction,
             mask_margin: opts.mask_margin,
+            mask_claim: opts.mask_claim,
             shadow_depth: opts.mask_shadow_depth,
         };
         (0..opts.batch_scenes)
@@ -918,6 +926,7 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         losses,
         object_fraction: opts.object_fraction,
         mask_margin: opts.mask_margin,
+        mask_claim: opts.mask_claim,
         mask_shadow_depth: opts.mask_shadow_depth,
         seed: opts.seed,
     }
