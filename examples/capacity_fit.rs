@@ -17,7 +17,7 @@
 //! draw the scene and the hypernetworks are what limit: their span (free hidden near the
 //! latents: the heads' H directions) or the latent → hidden map (free hidden far above).
 //!
-//! Usage: `capacity_fit --data DIR [--model M] [--scenes 3] [--views 4] [--latent-steps 600]
+//! Usage: `capacity_fit --data DIR [--model M] [--scenes 3] [--first 0] [--views 4] [--latent-steps 600]
 //! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads] [--no-free-fields]`
 //! (`--lr` for free weights, `--hidden-lr` for free hidden activations: a hidden unit is
 //! about as large as a latent, a weight two orders smaller).
@@ -41,6 +41,8 @@ struct Args {
     data: PathBuf,
     model: Option<String>,
     scenes: usize,
+    /// Index of the first scene (`--first`).
+    first: usize,
     views: usize,
     latent_steps: usize,
     free_steps: usize,
@@ -57,6 +59,7 @@ fn parse_args() -> Result<Args> {
         data: PathBuf::new(),
         model: None,
         scenes: 3,
+        first: 0,
         views: 4,
         latent_steps: 600,
         free_steps: 2000,
@@ -83,6 +86,7 @@ fn parse_args() -> Result<Args> {
             "--data" => a.data = PathBuf::from(val),
             "--model" => a.model = Some(val),
             "--scenes" => a.scenes = val.parse().context("--scenes")?,
+            "--first" => a.first = val.parse().context("--first")?,
             "--views" => a.views = val.parse().context("--views")?,
             "--latent-steps" => a.latent_steps = val.parse().context("--latent-steps")?,
             "--free-steps" => a.free_steps = val.parse().context("--free-steps")?,
@@ -192,7 +196,7 @@ fn main() -> Result<()> {
     let mut hidden = Vec::new();
     println!("| scene | latents fitted | free hidden | free fields | free fields + heads |");
     println!("| --- | ---: | ---: | ---: | ---: |");
-    for i in 0..args.scenes.min(data.len()) {
+    for i in args.first..(args.first + args.scenes).min(data.len()) {
         let scene = data.load(i)?;
         let codes = fit_latents_to_views(&model, &scene, args.views, args.latent_steps)?;
         let views: Vec<InputView> = scene.views[..args.views]
