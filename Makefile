@@ -458,7 +458,7 @@ PAPER_HYPERNET := --set hypernet_hidden=128
 # hypernetwork (`hypernet_per_layer`, as SIREN's and LFN's hypernetworks: each layer's heads read
 # 128 hidden units of their own, the light fields span 3 × 128 dimensions; no extra work per ray).
 # Grown from p7 it renders the same; on p7's step-8,000 snapshot the best point of that span drew
-# a Blender test scene at 32.1 dB against 31.3 for the shared one (docs/training-log.md,
+# two Blender test scenes at 33.3 dB against 32.0 for the shared one (docs/training-log.md,
 # fourteenth session). p7 + p8 make the paper's 60,000 steps at 128².
 PAPER_PER_LAYER := --set hypernet_per_layer=true
 model-paper: build
