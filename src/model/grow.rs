@@ -464,12 +464,8 @@ fn head_names(tensors: &BTreeMap<String, Tensor>, prefix: &str) -> Vec<String> {
     tensors
         .keys()
         .filter(|k| {
-            k.strip_prefix(prefix).is_some_and(|rest| {
-                (rest.starts_with("layers.")
-                    || rest.starts_with("weight.")
-                    || rest.starts_with("bias."))
-                    && !rest.contains("fc1.")
-            })
+            k.strip_prefix(prefix)
+                .is_some_and(|rest| !rest.contains("fc1."))
         })
         .cloned()
         .collect()

@@ -121,7 +121,11 @@ impl HyperNet {
 
     /// latents [S, D] → the S light fields' layers.
     pub fn forward(&self, latents: &Tensor) -> Result<Vec<GeneratedLayer>> {
-        self.from_hidden(&self.hidden(latents)?)
+        let hidden = self.hidden_layers(latents)?;
+        (0..self.layers.len())
+            // One shared hidden layer, or layer l's own.
+            .map(|l| self.generate(l, &hidden[l % hidden.len()]))
+            .collect()
     }
 
     /// latents [S, D] → the hidden layers' activations [S, H], or [S, L·H] with one hidden
@@ -130,44 +134,54 @@ impl HyperNet {
     /// subspace of the light field's weights (`examples/capacity_fit` measures what that
     /// costs).
     pub fn hidden(&self, latents: &Tensor) -> Result<Tensor> {
+        Tensor::cat(&self.hidden_layers(latents)?, 1)
+    }
+
+    /// The hidden activations ([`HyperNet::hidden`]'s shape) → the S light fields' layers.
+    pub fn from_hidden(&self, hidden: &Tensor) -> Result<Vec<GeneratedLayer>> {
+        let width = hidden.dim(1)? / self.fc1.len();
+        (0..self.layers.len())
+            .map(|l| {
+                let own = if self.fc1.len() == 1 {
+                    hidden.clone()
+                } else {
+                    hidden.narrow(1, l * width, width)?.contiguous()?
+                };
+                self.generate(l, &own)
+            })
+            .collect()
+    }
+
+    /// latents [S, D] → each hidden layer's activations [S, H] (one, or one per light-field
+    /// layer).
+    fn hidden_layers(&self, latents: &Tensor) -> Result<Vec<Tensor>> {
         let latents = if self.rms_norm {
             let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
             latents.broadcast_div(&rms)?
         } else {
             latents.clone()
         };
-        let hidden = self
-            .fc1
+        self.fc1
             .iter()
             .map(|fc1| linear_layer(&latents, fc1, Activation::Relu))
-            .collect::<Result<Vec<_>>>()?;
-        match hidden.as_slice() {
-            [shared] => Ok(shared.clone()),
-            per_layer => Tensor::cat(per_layer, 1),
-        }
+            .collect()
     }
 
-    /// The hidden activations ([`HyperNet::hidden`]'s shape) → the S light fields' layers.
-    pub fn from_hidden(&self, hidden: &Tensor) -> Result<Vec<GeneratedLayer>> {
-        let s = hidden.dim(0)?;
-        let width = hidden.dim(1)? / self.fc1.len();
-        self.layers
-            .iter()
-            .enumerate()
-            .map(|(i, l)| {
-                let own = if self.fc1.len() == 1 {
-                    hidden.clone()
-                } else {
-                    hidden.narrow(1, i * width, width)?.contiguous()?
-                };
-                Ok(GeneratedLayer {
-                    weight: linear_layer(&own, &l.weight, Activation::Identity)?
-                        .reshape((s, l.fan_in, l.fan_out))?,
-                    bias: linear_layer(&own, &l.bias, Activation::Identity)?
-                        .reshape((s, 1, l.fan_out))?,
-                })
-            })
-            .collect()
+    /// Light-field layer `l`'s weights and biases from the hidden activations its heads read.
+    fn generate(&self, l: usize, hidden: &Tensor) -> Result<GeneratedLayer> {
+        let (s, heads) = (hidden.dim(0)?, &self.layers[l]);
+        Ok(GeneratedLayer {
+            weight: linear_layer(hidden, &heads.weight, Activation::Identity)?.reshape((
+                s,
+                heads.fan_in,
+                heads.fan_out,
+            ))?,
+            bias: linear_layer(hidden, &heads.bias, Activation::Identity)?.reshape((
+                s,
+                1,
+                heads.fan_out,
+            ))?,
+        })
     }
 }
 
