@@ -275,8 +275,9 @@ pub const PAPER_DECODER: [&str; 7] = [
 /// A training step as `colf-train` runs it: the default model's own recipe (the bundled model
 /// as init; 4 scenes × 4 views × 256 rays, K = 7, object proposals for both mask losses), or
 /// (`paper`) the same with the decoder at the `paper` preset's sizes; through the fused decoder
-/// or (`reference`) candle's autograd; with `reach` > 0, the model's `shadow_reach` set to it.
-fn measure_train(which: &str, reference: bool, reach: f64, steps: u64) -> Result<Value> {
+/// or (`reference`) candle's autograd; with the model's `shadow_reach` and `slot_reach` set as
+/// `reach` says.
+fn measure_train(which: &str, reference: bool, reach: Reach, steps: u64) -> Result<Value> {
     use colf::train::trainer::{TrainOptions, Trainer};
     let dir = tempfile::tempdir()?;
     let synth = sibling_binary("colf-synth")?;
@@ -322,7 +323,7 @@ fn measure_train(which: &str, reference: bool, reach: f64, steps: u64) -> Result
         eval_scenes: 0,
         max_bad_steps: 10,
         reference_decoder: reference,
-        config_overrides: reach_override(reach),
+        config_overrides: reach.overrides(),
         ..TrainOptions::default()
     };
     let mut trainer = Trainer::new(opts, false)?;
@@ -341,28 +342,56 @@ fn measure_train(which: &str, reference: bool, reach: f64, steps: u64) -> Result
         ""
     };
     Ok(json!({
-        "what": format!("training step ({path}{threads}{}; 4 scenes x 4 views x 256 rays, K=7, proposals)", reach_label(reach)),
+        "what": format!("training step ({path}{threads}{}; 4 scenes x 4 views x 256 rays, K=7, proposals)", reach.label()),
         "preset": which, "slots": 7, "runs": steps,
         "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "cores_busy": cpu / wall,
         "rays_per_s": 4096.0 / s, "peak_mib": peak_rss_mib()
     }))
 }
 
-/// `--set shadow_reach=…` for a reach > 0, else nothing.
-fn reach_override(reach: f64) -> Vec<String> {
-    if reach > 0.0 {
-        vec![format!("shadow_reach={reach}")]
-    } else {
-        Vec::new()
-    }
+/// The bounds a measurement's model has on where slots are evaluated (0: none): the shadow
+/// lines' (`shadow_reach`) and the camera rays' (`slot_reach`).
+#[derive(Clone, Copy, Debug, Default)]
+struct Reach {
+    shadow: f64,
+    slots: f64,
 }
 
-/// A row's note of the shadow reach, empty without one.
-fn reach_label(reach: f64) -> String {
-    if reach > 0.0 {
-        format!(", shadow reach {reach}")
-    } else {
-        String::new()
+impl Reach {
+    /// From a measurement's spec: `reach` (the shadow reach) and `slot_reach`.
+    fn of(spec: &Value) -> Reach {
+        Reach {
+            shadow: spec["reach"].as_f64().unwrap_or(0.0),
+            slots: spec["slot_reach"].as_f64().unwrap_or(0.0),
+        }
+    }
+
+    fn is_none(&self) -> bool {
+        self.shadow == 0.0 && self.slots == 0.0
+    }
+
+    /// `--set shadow_reach=…` and `--set slot_reach=…` for the reaches > 0.
+    fn overrides(&self) -> Vec<String> {
+        let mut out = Vec::new();
+        if self.shadow > 0.0 {
+            out.push(format!("shadow_reach={}", self.shadow));
+        }
+        if self.slots > 0.0 {
+            out.push(format!("slot_reach={}", self.slots));
+        }
+        out
+    }
+
+    /// A row's note of the reaches, empty without one.
+    fn label(&self) -> String {
+        let mut out = String::new();
+        if self.shadow > 0.0 {
+            out += &format!(", shadow reach {}", self.shadow);
+        }
+        if self.slots > 0.0 {
+            out += &format!(", slot reach {}", self.slots);
+        }
+        out
     }
 }
 
@@ -388,12 +417,12 @@ fn decoder_config(which: &str) -> Result<Config> {
 /// The decoder part of a training step — the rays encoded, the light fields, heads, shadows
 /// and compositor, the colour and mask losses, and the backward down to the hypernetworks'
 /// outputs — for 4 scenes × 4 views × 256 rays, K = 7, through the fused kernel or (with
-/// `reference`) candle's autograd; with `reach` > 0, `shadow_reach` set to it.
-fn measure_decoder(which: &str, reference: bool, reach: f64, reps: usize) -> Result<Value> {
+/// `reference`) candle's autograd; with `shadow_reach` and `slot_reach` as `reach` says.
+fn measure_decoder(which: &str, reference: bool, reach: Reach, reps: usize) -> Result<Value> {
     use candle_core::{Device, Tensor, Var};
     use colf::model::decode_kernel::DecodeShape;
     use colf::model::{RayBatch, SceneRays, SlotWeights};
-    let cfg = decoder_config(which)?.with_overrides(&reach_override(reach))?;
+    let cfg = decoder_config(which)?.with_overrides(&reach.overrides())?;
     let (b, k, r) = (4usize, 7usize, 1024usize);
     let colf = Colf::init(&cfg, 0)?.into_trainable()?;
     let mut net = colf.model().clone();
@@ -472,12 +501,12 @@ fn measure_decoder(which: &str, reference: bool, reach: f64, reps: usize) -> Res
     let gflop = 2.0 * (fwd + bwd) * 1e-9;
     let path = if reference { "autograd" } else { "fused" };
     let mut row = json!({
-        "what": format!("decoder fwd+bwd of a training step ({path}{}; 4 scenes x 4 views x 256 rays, K=7)", reach_label(reach)),
+        "what": format!("decoder fwd+bwd of a training step ({path}{}; 4 scenes x 4 views x 256 rays, K=7)", reach.label()),
         "preset": which, "slots": k, "runs": runs,
         "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "peak_mib": peak_rss_mib()
     });
     // With a reach the kernel skips work the count includes: no rate is claimed.
-    if reach == 0.0 {
+    if reach.is_none() {
         row["gflops"] = json!(gflop / s);
         row["gflops_per_cpu_s"] = json!(gflop / cpu);
     }
@@ -579,7 +608,7 @@ fn run_one(spec: &Value) -> Result<Value> {
         Some("train") => measure_train(
             spec["preset"].as_str().unwrap_or("default"),
             spec["reference"].as_bool().unwrap_or(false),
-            spec["reach"].as_f64().unwrap_or(0.0),
+            Reach::of(spec),
             if quick { 3 } else { 10 },
         ),
         Some("default-encode") => measure_default_encode(
@@ -591,7 +620,7 @@ fn run_one(spec: &Value) -> Result<Value> {
         Some("decoder") => measure_decoder(
             spec["preset"].as_str().unwrap_or("default"),
             spec["reference"].as_bool().unwrap_or(false),
-            spec["reach"].as_f64().unwrap_or(0.0),
+            Reach::of(spec),
             reps,
         ),
         other => bail!("unknown measurement {other:?}"),
@@ -601,6 +630,10 @@ fn run_one(spec: &Value) -> Result<Value> {
 /// The shadow reach of the trainer's `shadow reach` rows (world units): the one the room and
 /// paper-sized runs train with (`docs/speed.md`).
 const SHADOW_REACH: f64 = 3.0;
+
+/// The slot reach of the `slot reach` rows (frame units): the one run p's p9 and the room runs
+/// train with (`docs/speed.md`).
+const SLOT_REACH: f64 = 3.0;
 
 fn main() -> Result<()> {
     // As every colf program does (cli::run): keep freed tensor buffers instead of returning
@@ -632,6 +665,10 @@ fn main() -> Result<()> {
                 specs.push(json!({"kind": "decoder", "preset": preset, "reference": reference}));
             }
             specs.push(json!({"kind": "decoder", "preset": preset, "reach": SHADOW_REACH}));
+            specs.push(
+                json!({"kind": "decoder", "preset": preset, "reach": SHADOW_REACH,
+                              "slot_reach": SLOT_REACH}),
+            );
         }
         for preset in ["default", "paper"] {
             specs.push(json!({"kind": "train", "preset": preset}));
@@ -639,6 +676,10 @@ fn main() -> Result<()> {
             specs.push(json!({"kind": "train", "preset": preset, "reference": true,
                               "candle_spin": "25000"}));
             specs.push(json!({"kind": "train", "preset": preset, "reach": SHADOW_REACH}));
+            specs.push(
+                json!({"kind": "train", "preset": preset, "reach": SHADOW_REACH,
+                              "slot_reach": SLOT_REACH}),
+            );
         }
         for size in [64, 128] {
             for reference in [false, true] {
@@ -801,14 +842,23 @@ fn main() -> Result<()> {
             }
         }
         let reach = format!("shadow reach {SHADOW_REACH}");
-        if let Some(x) = ratio(
-            find("training step", preset, &reach, ""),
-            find("training step", preset, "autograd", ""),
-            "ms",
-        ) {
-            println!("training step ({preset}): fused with a {reach} {x:.2}x faster than autograd");
+        let slots = format!("slot reach {SLOT_REACH}");
+        for with in [&reach, &slots] {
+            if let Some(x) = ratio(
+                find("training step", preset, with, ""),
+                find("training step", preset, "autograd", ""),
+                "ms",
+            ) {
+                println!(
+                    "training step ({preset}): fused with a {with} {x:.2}x faster than autograd"
+                );
+            }
         }
-        for (label, extra) in [("", ""), (" with a ", reach.as_str())] {
+        for (label, extra) in [
+            ("", ""),
+            (" with a ", reach.as_str()),
+            (" with a ", slots.as_str()),
+        ] {
             let d = ratio(
                 find("decoder", preset, "fused", extra),
                 find("decoder", preset, "autograd", ""),

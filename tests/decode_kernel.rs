@@ -249,6 +249,12 @@ fn check(case: Case) {
     let what = format!("K = {}, {:?}", case.k, case.cfg);
     for ((name, a), (_, b)) in fused.outputs.iter().zip(&reference.outputs) {
         assert_eq!(a.dims(), b.dims(), "{name}");
+        // A slot absent from a ray (beyond `slot_reach`) has ordering +∞ and log-weight −∞
+        // in both; those entries must agree exactly, the rest are compared below.
+        let (a, b) = (
+            &finite_where_equal(a, b, name),
+            &finite_where_equal(b, a, name),
+        );
         // Relative, or absolute on outputs whose values are all tiny: the reference's softplus,
         // ln(1 + e^−|x|) in f32, loses the σ of 1e-4 and below that the kernel's ln_1p keeps.
         let scale = norm(b).max((b.elem_count() as f32).sqrt());
@@ -285,6 +291,28 @@ fn check(case: Case) {
         checked += 1;
     }
     assert!(checked > 20, "{checked} gradients compared");
+}
+
+/// `a` with its non-finite entries set to 0, after checking that `b` has the same non-finite
+/// values at the same places.
+fn finite_where_equal(a: &Tensor, b: &Tensor, name: &str) -> Tensor {
+    let (va, vb) = (
+        a.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+        b.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+    );
+    let out: Vec<f32> = va
+        .iter()
+        .zip(&vb)
+        .map(|(x, y)| {
+            if x.is_finite() {
+                *x
+            } else {
+                assert_eq!(x.to_bits(), y.to_bits(), "output {name}: {x} against {y}");
+                0.0
+            }
+        })
+        .collect();
+    Tensor::from_vec(out, a.shape(), &Device::Cpu).unwrap()
 }
 
 fn case(cfg: Config, k: usize) -> Case {
@@ -366,25 +394,29 @@ fn a_static_background_and_deeper_heads() {
     ));
 }
 
-/// With `shadow_reach`, shadow lines beyond it and rays off the ground are left out of the
-/// kernel's shadow pass: the same values and gradients as the reference, which masks σ.
-#[test]
-fn shadow_lines_within_a_reach_and_rays_off_the_ground() {
-    let reach = Config {
-        shadow_reach: 2.5,
-        ..base()
-    };
+/// [`check`] with K = 1 and 7 and some rays off the ground, then with differentiable rays.
+fn check_with_rays_off_the_ground(cfg: &Config) {
     for k in [1, 7] {
         check(Case {
             sky: true,
-            ..case(reach.clone(), k)
+            ..case(cfg.clone(), k)
         });
     }
     check(Case {
         scenes: 1,
         sky: true,
         ray_grads: true,
-        ..case(reach, 6)
+        ..case(cfg.clone(), 6)
+    });
+}
+
+/// With `shadow_reach`, shadow lines beyond it and rays off the ground are left out of the
+/// kernel's shadow pass: the same values and gradients as the reference, which masks σ.
+#[test]
+fn shadow_lines_within_a_reach_and_rays_off_the_ground() {
+    check_with_rays_off_the_ground(&Config {
+        shadow_reach: 2.5,
+        ..base()
     });
     check(Case {
         sky: true,
@@ -421,6 +453,82 @@ fn a_shadow_reach_zeroes_only_the_far_lines() {
     }
 }
 
+/// With `slot_reach`, a foreground slot is absent from the rays beyond it: the kernel leaves
+/// its light field out there, the reference masks it (ordering +∞, weight 0, no colour, no
+/// shadow, no gradient); the same values and gradients, with shadows on lines or on the ray,
+/// with a shadow reach beside it, rays off the ground, extreme rays and differentiable rays.
+#[test]
+fn slots_within_a_reach() {
+    let reach = Config {
+        slot_reach: 2.5,
+        ..base()
+    };
+    check_with_rays_off_the_ground(&reach);
+    check(Case {
+        extreme: true,
+        ..case(reach.clone(), 7)
+    });
+    check(case(
+        Config {
+            shadow_reach: 2.0,
+            ..reach.clone()
+        },
+        5,
+    ));
+    check(case(
+        Config {
+            shadow_light: None,
+            ..reach
+        },
+        5,
+    ));
+}
+
+/// A slot absent from a ray has weight 0 and ordering +∞ there, and about half of the random
+/// (ray, slot) pairs lie beyond 2.5 units here (so the test means something); where a slot is
+/// present its colour is the unbounded model's.
+#[test]
+fn a_slot_reach_leaves_out_only_the_far_slots() {
+    let bounded = Config {
+        slot_reach: 2.5,
+        ..base()
+    };
+    let output = |cfg: &Config, name: &str| {
+        let out = run(&case(cfg.clone(), 7), false);
+        let (_, t) = out.outputs.iter().find(|(n, _)| n == name).unwrap().clone();
+        t.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    };
+    let (weights, ordering) = (output(&bounded, "weights"), output(&bounded, "ordering"));
+    let fg: Vec<usize> = (0..weights.len()).filter(|i| i % 8 != 0).collect();
+    let absent: Vec<usize> = fg
+        .iter()
+        .copied()
+        .filter(|&i| ordering[i] == f32::INFINITY)
+        .collect();
+    let share = absent.len() as f32 / fg.len() as f32;
+    assert!((0.2..0.8).contains(&share), "{share} of the pairs absent");
+    assert!(absent.iter().all(|&i| weights[i] == 0.0));
+    assert!((0..weights.len())
+        .step_by(8)
+        .all(|i| ordering[i].is_finite()));
+    let (near, free) = (output(&bounded, "colors"), output(&base(), "colors"));
+    for (i, (a, b)) in near.iter().zip(&free).enumerate() {
+        // The background's colour is darkened by the shadows, which the reach changes.
+        if i / 3 % 8 == 0 {
+            continue;
+        }
+        let present = ordering[i / 3].is_finite();
+        assert!(
+            if present {
+                (a - b).abs() <= 1e-6
+            } else {
+                *a == 0.0
+            },
+            "{a} vs {b}"
+        );
+    }
+}
+
 #[test]
 fn differentiable_rays_as_in_refinement() {
     check(Case {
@@ -439,6 +547,10 @@ fn same_bytes_whatever_the_thread_count() {
         base(),
         Config {
             shadow_reach: 2.5,
+            ..base()
+        },
+        Config {
+            slot_reach: 2.5,
             ..base()
         },
     ] {

@@ -429,3 +429,54 @@ fn subsets_composited_from_fields_evaluated_once_equal_masked_renders() {
         .is_err());
     assert!(r.composite(&values, &[true; 3]).is_err());
 }
+
+/// With `slot_reach`, the fast renderer leaves each slot out of the same rays as the training
+/// code (weight 0, ordering +∞, no shadow): the same render, with shadows on lines and on the
+/// ray, and through `evaluate_fields` + `composite`; a fair share of the (ray, slot) pairs is
+/// left out, and an adaptive mask narrows further without bringing a slot back.
+#[test]
+fn light_field_with_a_slot_reach_matches_candle() {
+    for extra in [
+        &[
+            "shadow_light=[30, 55]",
+            "shadow_reach=2.5",
+            "slot_reach=2.5",
+        ][..],
+        &["slot_reach=2"][..],
+    ] {
+        let mut overrides = vec!["shadow_head=true".to_string(), "ray_fourier_freqs=2".into()];
+        overrides.extend(extra.iter().map(|s| s.to_string()));
+        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        let model = Colf::init(&cfg, 3).unwrap();
+        compare_model(&model, 4, 500, 2e-3);
+        let latents: Vec<Vec<f32>> = (0..4).map(|i| noise(64, 10 + i)).collect();
+        let (frames, origins, dirs) = scene(4, 500);
+        let prepared = model.prepare(&latents, &noise(64, 7)).unwrap();
+        let slow = model
+            .render_rays(&prepared, &frames, &origins, &dirs)
+            .unwrap();
+        let renderer = FastRenderer::new(&model, &prepared, &frames).unwrap();
+        let fast = renderer.render(&origins, &dirs, None, None).unwrap();
+        let absent: Vec<usize> = (0..fast.ordering.len())
+            .filter(|&u| fast.ordering[u] == f32::INFINITY)
+            .collect();
+        let share = absent.len() as f32 / (4.0 * 500.0);
+        assert!((0.1..0.9).contains(&share), "{share} of the pairs absent");
+        for &u in &absent {
+            assert!(u % 5 != 0, "the background is always present");
+            assert_eq!(slow.ordering[u], f32::INFINITY);
+            assert_eq!((fast.weights[u], fast.shadow[u]), (0.0, 0.0));
+        }
+        let values = renderer.evaluate_fields(&origins, &dirs).unwrap();
+        let all = renderer.composite(&values, &[true; 5]).unwrap();
+        assert_eq!(all, fast);
+        let some = renderer
+            .composite(&values, &[true, true, false, true, true])
+            .unwrap();
+        let mask: Vec<bool> = (0..2500).map(|u| u % 5 != 2).collect();
+        assert_eq!(
+            some,
+            renderer.render(&origins, &dirs, None, Some(&mask)).unwrap()
+        );
+    }
+}

@@ -46,6 +46,34 @@ fn log_losses(out: &Path) -> Vec<(u64, f64)> {
         .collect()
 }
 
+/// With slots absent beyond a tight reach, the mask loss leaves out the rays whose matched slot
+/// is absent there (its log weight −∞): every step's loss is finite, and the model keeps the
+/// reach in its config.
+#[test]
+fn a_slot_reach_trains_with_the_mask_loss() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = data(dir.path());
+    let out = dir.path().join("m.safetensors");
+    train(
+        &data,
+        &out,
+        10,
+        &[
+            "--mask-weight",
+            "0.5",
+            "--set",
+            "attention_frames=true",
+            "--set",
+            "slot_reach=0.4",
+        ],
+    );
+    let losses = log_losses(&out);
+    assert_eq!(losses.len(), 10);
+    assert!(losses.iter().all(|(_, l)| l.is_finite()), "{losses:?}");
+    let model = colf::model::Colf::load(&out).unwrap();
+    assert_eq!(model.config().slot_reach, 0.4);
+}
+
 #[test]
 fn loss_falls_on_a_tiny_fixed_set() {
     let dir = tempfile::tempdir().unwrap();

@@ -81,17 +81,39 @@ impl Compositor {
 
     /// ordering [B, R, S] (the heads' values), shift [B, R, S] (world units, from `RayBatch`).
     pub fn forward(&self, ordering: &Tensor, shift: &Tensor) -> Result<Composite> {
-        let world = (ordering * self.scene_scale)?.add(shift)?;
+        self.forward_present(ordering, shift, None)
+    }
+
+    /// [`Compositor::forward`] with some slots absent from some rays: `present` [B, R, S]
+    /// (u8, 1 = present; the background present on every ray). An absent slot has ordering
+    /// +∞, weight 0 and log-weight −∞, does not count for the front, and passes no gradient.
+    pub fn forward_present(
+        &self,
+        ordering: &Tensor,
+        shift: &Tensor,
+        present: Option<&Tensor>,
+    ) -> Result<Composite> {
+        let mut world = (ordering * self.scene_scale)?.add(shift)?;
+        let absent_as = |t: &Tensor, v: f64| match present {
+            Some(p) => p.where_cond(t, &Tensor::full(v as f32, t.shape(), t.device())?),
+            None => Ok(t.clone()),
+        };
+        world = absent_as(&world, f64::INFINITY)?;
         let front = world.min_keepdim(D::Minus1)?;
-        let gap = (world.broadcast_sub(&front)? / self.scene_scale)?; // ≥ 0
+        let gap = absent_as(&world.broadcast_sub(&front)?, 0.0)?;
+        let gap = (gap / self.scene_scale)?; // ≥ 0
         let squashed = gap.broadcast_div(&(gap.sqr()? + 1.0)?.sqrt()?)?;
         let inputs = Tensor::stack(&[ordering, &squashed.neg()?], D::Minus1)?; // [B, R, S, 2]
         let learned = self.v.forward(&inputs)?.squeeze(D::Minus1)?;
         let prior = gap.broadcast_mul(&self.gap_log_slope.exp()?)?;
-        let scores = (learned - prior)?;
+        let scores = absent_as(&(learned - prior)?, f64::NEG_INFINITY)?;
         Ok(Composite {
             weights: candle_nn::ops::softmax(&scores, D::Minus1)?,
-            log_weights: candle_nn::ops::log_softmax(&scores, D::Minus1)?,
+            // An absent slot's −∞ is a constant: a loss on it reaches no present slot.
+            log_weights: absent_as(
+                &candle_nn::ops::log_softmax(&scores, D::Minus1)?,
+                f64::NEG_INFINITY,
+            )?,
             ordering: world,
         })
     }

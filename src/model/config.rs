@@ -176,6 +176,17 @@ pub struct Config {
     /// reference and the renderers skip the same lines. Absent in older files (= 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub shadow_reach: f64,
+    /// A foreground slot is absent on a camera ray whose line passes farther than this from
+    /// the slot's frame origin (frame units; 0 = no bound): there it has no colour, compositor
+    /// weight 0, ordering +∞ and casts no shadow, and its light field is not evaluated. Slots
+    /// draw objects near their frames; without a bound every slot's light field runs on every
+    /// ray, and on clevr567 three quarters of those evaluations are beyond 3 units, where the
+    /// paper-sized decoder's slots hold compositor weights averaging 7·10⁻⁴ (`docs/speed.md`).
+    /// Decided from the encoded ray's bounded moment ([`Config::slot_reach_bound`]), so the
+    /// decode kernel, the candle reference and the renderers leave out the same evaluations.
+    /// Light-field models only. Absent in older files (= 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub slot_reach: f64,
     /// Which decoder turns slots into pixels: absent (the default) = COLF's light fields (one
     /// network evaluation per ray per slot); present = the uORF-style volumetric baseline of
     /// `volumetric.rs` with these sizes (per-slot NeRF MLP conditioned on the latent, samples
@@ -345,6 +356,7 @@ impl Config {
             shadow_head: false,
             shadow_light: None,
             shadow_reach: 0.0,
+            slot_reach: 0.0,
             volumetric: None,
             inference: None,
         }
@@ -415,13 +427,26 @@ impl Config {
     }
 
     /// With `shadow_reach` = ρ: the largest squared bounded moment |m̂|² of a shadow line that
-    /// is evaluated. The encoding stores m̂ = (m/s)/√(1 + |m/s|²), |m| the line's distance from
-    /// the frame origin and s a foreground slot's [`Config::line_scale`] (`rays.rs`), so |m| ≤ ρ
-    /// ⟺ |m̂|² ≤ (ρ/s)²/(1 + (ρ/s)²). None: every shadow line is evaluated.
+    /// is evaluated ([`Config::reach_bound`]). None: every shadow line is evaluated.
     pub fn shadow_reach_bound(&self) -> Option<f32> {
-        (self.shadow_reach > 0.0 && self.shadow_light.is_some()).then(|| {
+        self.shadow_light
+            .and_then(|_| self.reach_bound(self.shadow_reach))
+    }
+
+    /// With `slot_reach` = ρ: the largest squared bounded moment |m̂|² of a camera ray on which
+    /// a foreground slot is evaluated ([`Config::reach_bound`]). None: every slot on every ray.
+    pub fn slot_reach_bound(&self) -> Option<f32> {
+        self.reach_bound(self.slot_reach)
+    }
+
+    /// The largest squared bounded moment |m̂|² of a line within `reach` (> 0) of a foreground
+    /// frame's origin. The encoding stores m̂ = (m/s)/√(1 + |m/s|²), |m| the line's distance
+    /// from the frame origin and s a foreground slot's [`Config::line_scale`] (`rays.rs`), so
+    /// |m| ≤ ρ ⟺ |m̂|² ≤ (ρ/s)²/(1 + (ρ/s)²). None for a reach of 0 (no bound).
+    fn reach_bound(&self, reach: f64) -> Option<f32> {
+        (reach > 0.0).then(|| {
             // (ρ/s)²/(1 + (ρ/s)²) written so that a huge reach gives 1 (every line), not ∞/∞.
-            let inverse = (self.line_scale(1) / self.shadow_reach).powi(2);
+            let inverse = (self.line_scale(1) / reach).powi(2);
             (1.0 / (1.0 + inverse)) as f32
         })
     }
@@ -542,6 +567,11 @@ impl Config {
                 && self.shadow_light.is_some())
         {
             bail!("model config: `shadow_reach` must be a positive distance, and needs `shadow_light`");
+        }
+        if self.slot_reach != 0.0
+            && !(self.slot_reach.is_finite() && self.slot_reach > 0.0 && !self.is_volumetric())
+        {
+            bail!("model config: `slot_reach` must be a positive distance, and applies to light-field models only");
         }
         if let Some(v) = &self.volumetric {
             if self.shadow_head {
@@ -787,5 +817,33 @@ mod tests {
         };
         assert!(dark.validate().is_err());
         assert!(with(3.0).validate().is_ok());
+    }
+
+    /// The slots' own reach bounds camera rays as the shadow reach bounds shadow lines, with
+    /// or without shadows; refused when negative, not finite or on a volumetric model; absent
+    /// from the JSON when 0.
+    #[test]
+    fn slot_reach_bounds_the_encoded_moment_of_camera_rays() {
+        let small = Config::small();
+        assert_eq!(small.slot_reach_bound(), None);
+        assert!(!small.to_json().contains("slot_reach"));
+        let with = |reach: f64| Config {
+            slot_reach: reach,
+            ..Config::small()
+        };
+        let q = with(3.0).slot_reach_bound().unwrap() as f64;
+        let r = 3.0 / small.scene_scale;
+        assert!((q - r * r / (1.0 + r * r)).abs() < 1e-7);
+        assert_eq!(with(3.0).shadow_reach_bound(), None);
+        assert!(with(3.0).validate().is_ok());
+        assert!(with(3.0).to_json().contains("\"slot_reach\":3.0"));
+        for bad in [-1.0, f64::NAN, f64::INFINITY] {
+            assert!(with(bad).validate().is_err(), "{bad}");
+        }
+        let volumetric = Config {
+            slot_reach: 3.0,
+            ..Config::volumetric()
+        };
+        assert!(volumetric.validate().is_err());
     }
 }

@@ -33,7 +33,7 @@ use super::config::Config;
 use super::heads::SHADOW_LOGIT_GAIN;
 use super::light_field::SlotWeights;
 use super::net::{Decoded, LightFieldDecoder};
-use super::rays::{within_shadow_reach, RayBatch};
+use super::rays::{within_reach, RayBatch};
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Storage, Tensor};
 use rayon::prelude::*;
 use std::sync::{Arc, Mutex};
@@ -221,6 +221,9 @@ pub struct DecodeShape {
     pub scene_scale: f32,
     /// With shadow lines, `Config::shadow_reach_bound`: lines beyond it are not evaluated.
     pub shadow_reach: Option<f32>,
+    /// `Config::slot_reach_bound`: a foreground field is absent on the rays beyond it, as
+    /// outside a support ([`DecodeOp::with_support`]).
+    pub slot_reach: Option<f32>,
 }
 
 impl DecodeShape {
@@ -237,6 +240,7 @@ impl DecodeShape {
             shadow_lines: cfg.shadow_head && cfg.shadow_light.is_some(),
             scene_scale: cfg.scene_scale as f32,
             shadow_reach: cfg.shadow_reach_bound(),
+            slot_reach: cfg.slot_reach_bound(),
         }
     }
 
@@ -885,7 +889,23 @@ impl DecodeOp {
         let sh = &self.shape;
         let (r, s, in_dim) = (sh.rays, u % sh.fields, sh.in_dim);
         let params = &fields[u * sh.field_params..(u + 1) * sh.field_params];
-        let active = self.support.as_ref().map(|support| &support[u]);
+        let x_all = &rays.coords[u * r * in_dim..(u + 1) * r * in_dim];
+        let support = self.support.as_ref().map(|support| &support[u]);
+        // A foreground field within `slot_reach` only: the support's rays (or all) that are.
+        let reached = sh.slot_reach.filter(|_| s > 0).and_then(|bound| {
+            let candidates: Box<dyn Iterator<Item = u32>> = match support {
+                Some(rows) => Box::new(rows.iter().copied()),
+                None => Box::new(0..r as u32),
+            };
+            let kept: Vec<u32> = candidates
+                .filter(|&ri| {
+                    let ri = ri as usize;
+                    within_reach(&x_all[ri * in_dim..(ri + 1) * in_dim], Some(bound))
+                })
+                .collect();
+            (kept.len() < support.map_or(r, Vec::len)).then_some(kept)
+        });
+        let active = reached.as_ref().or(support);
         let n_rows = active.map_or(r, Vec::len);
         let gather = |src: &[f32], rows: &[u32]| -> Vec<f32> {
             rows.iter()
@@ -896,7 +916,6 @@ impl DecodeOp {
                 })
                 .collect()
         };
-        let x_all = &rays.coords[u * r * in_dim..(u + 1) * r * in_dim];
         let casts = s > 0 && sh.shared.shadow.is_some();
         let lines_all = rays
             .lines
@@ -932,10 +951,7 @@ impl DecodeOp {
             let kept: Vec<u32> = (0..n_rows)
                 .filter(|&i| {
                     ground(i) != 0.0
-                        && within_shadow_reach(
-                            &lines[i * in_dim..(i + 1) * in_dim],
-                            sh.shadow_reach,
-                        )
+                        && within_reach(&lines[i * in_dim..(i + 1) * in_dim], sh.shadow_reach)
                 })
                 .map(|i| i as u32)
                 .collect();

@@ -250,10 +250,7 @@ impl ColfNet {
                                 .to_vec1::<f32>()?
                                 .chunks_exact(in_dim)
                                 .map(|line| {
-                                    f32::from(u8::from(rays::within_shadow_reach(
-                                        line,
-                                        Some(bound),
-                                    )))
+                                    f32::from(u8::from(rays::within_reach(line, Some(bound))))
                                 })
                                 .collect();
                             sigma.mul(&Tensor::from_vec(reach, (b, s, r), sigma.device())?)
@@ -264,10 +261,35 @@ impl ColfNet {
                 .transpose()?,
             None => lf.heads.shadow(&features)?,
         };
+        // With `slot_reach`: which slots are present on which rays [B, R, S] (u8, and as f32).
+        let present = match self.cfg.slot_reach_bound() {
+            Some(bound) => {
+                let in_dim = rays.coords.dim(2)?;
+                let coords = rays.coords.detach().flatten_all()?.to_vec1::<f32>()?;
+                let mut present = vec![1u8; b * r * s];
+                for (u, field) in coords.chunks_exact(r * in_dim).enumerate() {
+                    let (bi, si) = (u / s, u % s);
+                    for (ri, ray) in field.chunks_exact(in_dim).enumerate() {
+                        if si > 0 && !rays::within_reach(ray, Some(bound)) {
+                            present[(bi * r + ri) * s + si] = 0;
+                        }
+                    }
+                }
+                let present = Tensor::from_vec(present, (b, r, s), colors.device())?;
+                let as_f32 = present.to_dtype(candle_core::DType::F32)?;
+                Some((present, as_f32))
+            }
+            None => None,
+        };
         let shadow = match shadow {
             Some(sigma) => {
                 // Only foreground slots cast shadows: the background's σ is reported as 0.
                 let sigma = sigma.reshape((b, s, r))?.transpose(1, 2)?; // [B, R, S]
+                                                                        // An absent slot casts no shadow.
+                let sigma = match &present {
+                    Some((_, p)) => sigma.mul(p)?,
+                    None => sigma,
+                };
                 let zero = sigma.narrow(2, 0, 1)?.zeros_like()?;
                 if s == 1 {
                     Some(zero)
@@ -281,9 +303,14 @@ impl ColfNet {
             }
             None => None,
         };
-        let comp = lf
-            .compositor
-            .forward(&ordering.contiguous()?, &rays.shift)?;
+        if let Some((_, p)) = &present {
+            colors = colors.broadcast_mul(&p.unsqueeze(3)?)?;
+        }
+        let comp = lf.compositor.forward_present(
+            &ordering.contiguous()?,
+            &rays.shift,
+            present.as_ref().map(|(p, _)| p),
+        )?;
         let rgb = comp.weights.unsqueeze(3)?.broadcast_mul(&colors)?.sum(2)?;
         Ok(Decoded {
             rgb,

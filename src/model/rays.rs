@@ -130,11 +130,11 @@ pub fn shadow_line(o: DVec3, d: DVec3, to_light: DVec3) -> Option<(DVec3, DVec3)
     ground.is_finite().then_some((ground, -to_light))
 }
 
-/// Whether a slot's shadow is evaluated on a shadow line encoded as `encoded` (the line's
-/// [`encode_line`] values in the slot's frame), for the bound `Config::shadow_reach_bound`:
-/// the line passes within `shadow_reach` of the frame origin. Decided on the f32 encoding, so
-/// every decoder that evaluates the line decides alike.
-pub fn within_shadow_reach(encoded: &[f32], bound: Option<f32>) -> bool {
+/// Whether a line encoded as `encoded` (its [`encode_line`] values in a slot's frame) passes
+/// within a reach of the frame origin, for the bound `Config::shadow_reach_bound` (a shadow
+/// line) or `Config::slot_reach_bound` (a camera ray); None: no bound. Decided on the f32
+/// encoding, so every decoder that evaluates the line decides alike.
+pub fn within_reach(encoded: &[f32], bound: Option<f32>) -> bool {
     bound.is_none_or(|q| {
         encoded[3] * encoded[3] + encoded[4] * encoded[4] + encoded[5] * encoded[5] <= q
     })

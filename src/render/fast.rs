@@ -29,7 +29,9 @@
 #![allow(clippy::needless_range_loop)] // index loops over small fixed-size colour arrays
 
 use crate::model::heads::shadow_host;
-use crate::model::rays::{encode_line, light_direction, shadow_line, within_shadow_reach};
+use crate::model::rays::{
+    encode_line, light_direction, plucker_in_frame, shadow_line, within_reach,
+};
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
 use candle_core::{Device, Tensor};
@@ -171,6 +173,8 @@ struct LightFieldHost {
     in_dim: usize,
     /// The model's config with Fourier features off, for the shifts of `RayBatch`.
     shift_cfg: Config,
+    /// `Config::slot_reach_bound`: a foreground slot is absent on the rays beyond it.
+    slot_reach: Option<f32>,
 }
 
 /// `heads.shadow` on the host.
@@ -297,6 +301,7 @@ impl LightFieldHost {
             scene_scale: cfg.scene_scale,
             freqs: cfg.ray_fourier_freqs,
             in_dim: cfg.ray_input_dim(),
+            slot_reach: cfg.slot_reach_bound(),
             shift_cfg: Config {
                 ray_fourier_freqs: 0,
                 shadow_light: None,
@@ -386,6 +391,9 @@ pub struct FieldValues {
     base: Vec<f64>,
     /// The shadow densities the foreground slots cast [rays, fields].
     shadow: Vec<f32>,
+    /// With `Config::slot_reach`: whether each field is present on each ray [rays, fields];
+    /// empty without a reach (every field on every ray).
+    present: Vec<bool>,
 }
 
 /// A scene ready for the fast renderer: host copies of the weights, made once.
@@ -490,7 +498,11 @@ impl FastRenderer {
             shift: vec![0.0; s * r],
             base: vec![0.0; r],
             shadow: vec![0.0; s * r],
+            present: Vec::new(),
         };
+        let present = self
+            .within_slot_reach(lf, origins, dirs, None)
+            .map_or(Vec::new(), |(fields, _)| fields);
         let c = LF_CHUNK;
         values
             .colors
@@ -505,7 +517,11 @@ impl FastRenderer {
                 |sc, (ci, ((((colors, order), shift), base), shadow))| {
                     let (start, n) = (ci * c, base.len());
                     let rays = start..start + n;
-                    self.lf_fields(lf, sc, &origins[rays.clone()], &dirs[rays], None, shadow)?;
+                    let active = (!present.is_empty()).then(|| Active {
+                        fields: &present[s * start..s * (start + n)],
+                        shadows: None,
+                    });
+                    self.lf_fields(lf, sc, &origins[rays.clone()], &dirs[rays], active, shadow)?;
                     colors.copy_from_slice(&sc.colors[..3 * s * n]);
                     order.copy_from_slice(&sc.order[..s * n]);
                     shift.copy_from_slice(&sc.shift[..s * n]);
@@ -513,6 +529,7 @@ impl FastRenderer {
                     Ok::<(), anyhow::Error>(())
                 },
             )?;
+        values.present = present;
         Ok(values)
     }
 
@@ -536,9 +553,20 @@ impl FastRenderer {
         }
         let r = values.base.len();
         let mut out = RayOutput::zeros(r, s);
-        let active = keep.repeat(LF_CHUNK.min(r));
+        // The kept fields, where present (`Config::slot_reach`).
+        let active: Vec<bool> = if values.present.is_empty() {
+            keep.repeat(r)
+        } else {
+            values
+                .present
+                .iter()
+                .enumerate()
+                .map(|(u, &p)| p && keep[u % s])
+                .collect()
+        };
         par_ray_chunks(&mut out, LF_CHUNK, |sc, start, out| {
             let n = out.rgb.len() / 3;
+            let active = &active[s * start..s * (start + n)];
             let copy_into = |v: &mut Vec<f32>, src: &[f32]| {
                 v.clear();
                 v.extend_from_slice(src);
@@ -559,7 +587,7 @@ impl FastRenderer {
             // A left-out slot casts no shadow, as in a render where it is not evaluated.
             for (ri, row) in out.shadow.chunks_exact_mut(s).enumerate() {
                 for (si, v) in row.iter_mut().enumerate() {
-                    *v = if keep[si] {
+                    *v = if active[ri * s + si] {
                         values.shadow[(start + ri) * s + si]
                     } else {
                         0.0
@@ -666,11 +694,51 @@ impl FastRenderer {
         active: Option<Active>,
         out: ChunkOut,
     ) -> Result<()> {
+        let reach = self.within_slot_reach(lf, origins, dirs, active);
+        let active = match &reach {
+            Some((fields, shadows)) => Some(Active {
+                fields,
+                shadows: shadows.as_deref(),
+            }),
+            None => active,
+        };
         self.lf_fields(lf, sc, origins, dirs, active, out.shadow)?;
         let fields = active.map(|a| a.fields);
         self.lf_scores(lf, sc, origins.len(), fields);
         self.lf_composite(lf, sc, origins.len(), fields, out);
         Ok(())
+    }
+
+    /// With `Config::slot_reach`, `active` narrowed to the slots' reach: the ray × field mask
+    /// of the fields evaluated (and, when `active` names them apart, of the shadow lines), each
+    /// foreground slot left out of the rays beyond its reach — decided on the f32 moment of the
+    /// ray encoded in the slot's frame, as the decode kernel decides. None without a reach.
+    fn within_slot_reach(
+        &self,
+        lf: &LightFieldHost,
+        origins: &[DVec3],
+        dirs: &[DVec3],
+        active: Option<Active>,
+    ) -> Option<(Vec<bool>, Option<Vec<bool>>)> {
+        let bound = lf.slot_reach?;
+        let s = self.fields();
+        let mut within = vec![true; origins.len() * s];
+        for (ri, (o, d)) in origins.iter().zip(dirs).enumerate() {
+            for si in 1..s {
+                let line_scale = lf.shift_cfg.line_scale(si);
+                let m = plucker_in_frame(&self.inverses[si], *o, *d, line_scale).map(|v| v as f32);
+                within[ri * s + si] = within_reach(&m, Some(bound));
+            }
+        }
+        let and = |mask: &[bool]| -> Vec<bool> {
+            mask.iter().zip(&within).map(|(a, b)| *a && *b).collect()
+        };
+        let fields = match active {
+            Some(a) => and(a.fields),
+            None => within.clone(),
+        };
+        let shadows = active.and_then(|a| a.shadows).map(and);
+        Some((fields, shadows))
     }
 
     /// Stage 1 of [`Self::lf_chunk`] for every field: the scratch sized for the chunk, the
@@ -752,7 +820,7 @@ impl FastRenderer {
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
                     encode_line(out, inv, o, d, line_scale, lf.freqs);
                     // A line beyond the slot's reach casts nothing: not evaluated.
-                    if within_shadow_reach(out, sh.reach) {
+                    if within_reach(out, sh.reach) {
                         sc.lit_rows.push(ri);
                     }
                 }

@@ -623,10 +623,11 @@ impl Trainer {
         }
         let s = 1 + k;
         if opts.mask_weight > 0.0 && samples.iter().all(|s| s.has_masks) {
-            let (index, mut valid) = matched_targets(samples, weights_host, s);
-            if self.colf.config().cull_behind > 0.0 {
+            let (mut index, mut valid) = matched_targets(samples, weights_host, s);
+            let cfg = self.colf.config();
+            if cfg.cull_behind > 0.0 || cfg.slot_reach > 0.0 {
                 let log_weights = decoded.log_weights.flatten_all()?.to_vec1::<f32>()?;
-                leave_out_culled(&index, &mut valid, &log_weights, s);
+                leave_out_culled(&mut index, &mut valid, &log_weights, s);
             }
             let ray_weights = balanced_ray_weights(&index, &valid);
             let ce = weighted_cross_entropy(&decoded.log_weights, index, ray_weights)?;
@@ -968,16 +969,20 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
 }
 
 /// Below this log weight a (ray, slot) pair was culled (`Config::cull_behind` pushes the slot
-/// 10⁶ units back: log weights near −10⁵); no score gap of a drawn slot comes near it.
+/// 10⁶ units back: log weights near −10⁵) or the slot is absent (beyond `Config::slot_reach`:
+/// −∞); no score gap of a drawn slot comes near it.
 const CULLED_LOG_WEIGHT: f32 = -1e4;
 
 /// Leaves out of the compositor's mask loss the rays whose matched slot (`index`, per ray) is
-/// culled there (`log_weights` [rays, s]): the slot lies behind that ray's camera and cannot be
-/// asked to draw it; its log weight would make the loss ~10⁵ (docs/training-log.md, c1k).
-fn leave_out_culled(index: &[u32], valid: &mut [f32], log_weights: &[f32], s: usize) {
-    for (ray, (target, v)) in index.iter().zip(valid.iter_mut()).enumerate() {
+/// culled or absent there (`log_weights` [rays, s]): the slot lies behind that ray's camera, or
+/// beyond its reach, and cannot be asked to draw it; its log weight would make the loss ~10⁵
+/// (docs/training-log.md, c1k) or infinite. Such a ray's target becomes the background, whose
+/// log weight is finite, so that its weight of 0 leaves no NaN.
+fn leave_out_culled(index: &mut [u32], valid: &mut [f32], log_weights: &[f32], s: usize) {
+    for (ray, (target, v)) in index.iter_mut().zip(valid.iter_mut()).enumerate() {
         if log_weights[ray * s + *target as usize] < CULLED_LOG_WEIGHT {
             *v = 0.0;
+            *target = 0;
         }
     }
 }
@@ -1281,19 +1286,40 @@ mod tests {
     fn culled_targets_leave_the_mask_loss() {
         // 3 rays, 3 fields: ray 1's target (slot 2) is culled there, ray 2's culled slot is
         // not its target, ray 0 is already left out.
-        let index = [1u32, 2, 0];
+        let mut index = [1u32, 2, 0];
         let mut valid = [0.0f32, 1.0, 1.0];
         let log_weights = [
             -0.1, -2.0, -1e5, //
             -0.5, -1.0, -1e5, //
             -0.2, -1e5, -3.0,
         ];
-        leave_out_culled(&index, &mut valid, &log_weights, 3);
+        leave_out_culled(&mut index, &mut valid, &log_weights, 3);
         assert_eq!(valid, [0.0, 0.0, 1.0]);
+        assert_eq!(index, [1, 0, 0]);
         // A drawn slot far behind the front one keeps its target.
         let mut valid = [1.0f32];
-        leave_out_culled(&[1], &mut valid, &[-0.01, -90.0], 2);
+        leave_out_culled(&mut [1], &mut valid, &[-0.01, -90.0], 2);
         assert_eq!(valid, [1.0]);
+    }
+
+    /// A slot absent beyond its reach has log weight −∞ there: the ray leaves the loss, and
+    /// the loss stays finite with a finite gradient.
+    #[test]
+    fn absent_targets_leave_the_mask_loss_without_nan() {
+        let mut index = vec![2u32, 2];
+        let mut valid = vec![1.0f32, 1.0];
+        let log_weights = [-0.1f32, -2.5, f32::NEG_INFINITY, -0.3, -1.5, -2.0];
+        leave_out_culled(&mut index, &mut valid, &log_weights, 3);
+        assert_eq!((index.clone(), valid.clone()), (vec![0, 2], vec![0.0, 1.0]));
+        let log_p =
+            candle_core::Var::from_vec(log_weights.to_vec(), (1, 2, 3), &candle_core::Device::Cpu)
+                .unwrap();
+        let weights = balanced_ray_weights(&index, &valid);
+        let ce = weighted_cross_entropy(log_p.as_tensor(), index, weights).unwrap();
+        assert!((ce.to_scalar::<f32>().unwrap() - 2.0).abs() < 1e-6);
+        let grads = ce.backward().unwrap();
+        let g = grads.get(log_p.as_tensor()).unwrap().flatten_all().unwrap();
+        assert!(g.to_vec1::<f32>().unwrap().iter().all(|v| v.is_finite()));
     }
 
     #[test]
