@@ -542,6 +542,8 @@ fn usage_errors_exit_2() {
         ("encode", vec![GOOD_PNG, "--refine-lr", "1e38"]),
         ("encode", vec![GOOD_PNG, "--refine-shadow-reach", "-1"]),
         ("encode", vec![GOOD_PNG, "--refine-shadow-reach", "nan"]),
+        ("encode", vec![GOOD_PNG, "--refine-slot-reach", "-1"]),
+        ("encode", vec![GOOD_PNG, "--refine-slot-reach", "inf"]),
         ("sheet", vec![GOOD_PNG, "--scale", "0", "-o", "s.png"]),
     ];
     for (stage, args) in cases {
