@@ -511,16 +511,18 @@ model-paper: build
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT, is the bundled default model grown to the paper-sized decoder as make model-paper
-# grows it, hypernetworks 128 wide with a hidden layer per light-field layer as p8's (the bundled small decoder's own run stalled at
-# 23.5 dB on chairs), with shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit wide, 2 high). Held-out: 16 validation scenes (64², then 128²) scored as it
+# ROOM_INIT, is make model-paper's p7 — the paper-sized decoder after 10,000 steps on clevr567 at
+# 128² (the bundled small decoder's own run stalled at 23.5 dB on chairs; the bundled model grown
+# instead, the earlier start, must first learn its new units) — with a hidden layer per
+# light-field layer in each hypernetwork as p8's, and shadow lines and slots within 3 units
+# (ROOM_SETS; a chair is about 1 unit wide, 2 high). Held-out: 16 validation scenes (64², then 128²) scored as it
 # trains, 100 test scenes at 128² at the end. Data in $(ROOM_DATA)/PRESET/data, checkpoints and
 # logs in $(ROOM_RUN)/PRESET, outside the work tree; re-running resumes. Run with one thread
 # beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
-ROOM_INIT ?= models/default.safetensors
+ROOM_INIT ?= $(PAPER_RUN)/p7.safetensors
 ROOM_SETS := $(PAPER_DECODER) $(PAPER_HYPERNET) $(PAPER_PER_LAYER) --set shadow_reach=3 \
   $(PAPER_SLOT_REACH)
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
@@ -535,7 +537,7 @@ define room_model
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
 	  --size 128)
 	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
-	  { echo "model-$(1): no initial model at $(ROOM_INIT): set ROOM_INIT" >&2; exit 1; }
+	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to its p7 stage, or set ROOM_INIT" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
