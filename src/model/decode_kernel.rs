@@ -893,16 +893,14 @@ impl DecodeOp {
         let support = self.support.as_ref().map(|support| &support[u]);
         // A foreground field within `slot_reach` only: the support's rays (or all) that are.
         let reached = sh.slot_reach.filter(|_| s > 0).and_then(|bound| {
-            let candidates: Box<dyn Iterator<Item = u32>> = match support {
-                Some(rows) => Box::new(rows.iter().copied()),
-                None => Box::new(0..r as u32),
+            let within = |&ri: &u32| {
+                let ri = ri as usize;
+                within_reach(&x_all[ri * in_dim..(ri + 1) * in_dim], Some(bound))
             };
-            let kept: Vec<u32> = candidates
-                .filter(|&ri| {
-                    let ri = ri as usize;
-                    within_reach(&x_all[ri * in_dim..(ri + 1) * in_dim], Some(bound))
-                })
-                .collect();
+            let kept: Vec<u32> = match support {
+                Some(rows) => rows.iter().copied().filter(within).collect(),
+                None => (0..r as u32).filter(within).collect(),
+            };
             (kept.len() < support.map_or(r, Vec::len)).then_some(kept)
         });
         let active = reached.as_ref().or(support);

@@ -733,12 +733,10 @@ impl FastRenderer {
         let and = |mask: &[bool]| -> Vec<bool> {
             mask.iter().zip(&within).map(|(a, b)| *a && *b).collect()
         };
-        let fields = match active {
-            Some(a) => and(a.fields),
-            None => within.clone(),
-        };
-        let shadows = active.and_then(|a| a.shadows).map(and);
-        Some((fields, shadows))
+        Some(match active {
+            Some(a) => (and(a.fields), a.shadows.map(and)),
+            None => (within, None),
+        })
     }
 
     /// Stage 1 of [`Self::lf_chunk`] for every field: the scratch sized for the chunk, the
