@@ -480,3 +480,45 @@ fn light_field_with_a_slot_reach_matches_candle() {
         );
     }
 }
+
+/// Reaches set on a renderer (as an encoding judges its tries and its redundant slots) render
+/// exactly what the same weights render with the reaches in their config, and change the
+/// render of a model without them.
+#[test]
+fn reaches_set_on_a_renderer_match_a_model_with_them() {
+    let free = Colf::init(
+        &Config::small()
+            .with_overrides(&[
+                "shadow_head=true".to_string(),
+                "shadow_light=[30, 55]".into(),
+                "ray_fourier_freqs=2".into(),
+            ])
+            .unwrap(),
+        3,
+    )
+    .unwrap();
+    let bounded = free
+        .configured(&["shadow_reach=2.5".to_string(), "slot_reach=2".into()])
+        .unwrap();
+    let latents: Vec<Vec<f32>> = (0..4).map(|i| noise(64, 10 + i)).collect();
+    let (frames, origins, dirs) = scene(4, 500);
+    let render = |model: &Colf, reached: Option<&Config>| {
+        let prepared = model.prepare(&latents, &noise(64, 7)).unwrap();
+        let mut renderer = FastRenderer::new(model, &prepared, &frames).unwrap();
+        if let Some(reached) = reached {
+            renderer.set_reaches(reached);
+        }
+        let values = renderer.evaluate_fields(&origins, &dirs).unwrap();
+        (
+            renderer.render(&origins, &dirs, None, None).unwrap(),
+            renderer
+                .composite(&values, &[true, false, true, true, true])
+                .unwrap(),
+        )
+    };
+    let exact = render(&bounded, None);
+    assert_eq!(render(&free, Some(bounded.config())), exact);
+    assert_ne!(render(&free, None), exact);
+    // A model's own reaches give way to the ones set, none included.
+    assert_eq!(render(&bounded, Some(free.config())), render(&free, None));
+}

@@ -270,20 +270,21 @@ pub struct FitArgs {
     #[arg(long, default_value_t = crate::encode::refine::DEFAULT_SUPPORT, value_name = "EPS", value_parser = parse::unit_interval)]
     pub refine_support: f64,
 
-    /// During refinement, a slot casts no shadow on pixels whose shadow line passes farther
-    /// than D world units from it (for a model with shadows along the light and no reach of its
-    /// own; 0: every line). Far lines carry almost no shadow: the default saves 18 % of the
-    /// default encoding's time for -0.003 dB on held-out scenes; the result is rendered with the
-    /// model's own shadows (docs/speed.md).
+    /// While encoding (refinement; with one input image also judging the tries and the
+    /// redundant slots), a slot casts no shadow on pixels whose shadow line passes farther than
+    /// D world units from it (for a model with shadows along the light and no reach of its own;
+    /// 0: every line). Far lines carry almost no shadow: in refinement the default saves 18 % of
+    /// the default encoding's time for -0.003 dB on held-out scenes; the codes are rendered with
+    /// the model's own shadows (docs/speed.md).
     #[arg(long, default_value_t = crate::encode::refine::DEFAULT_REFINE_SHADOW_REACH, value_name = "D", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_shadow_reach: f64,
 
-    /// During refinement, a slot is left out of the pixels whose ray passes farther than D
-    /// units from its frame origin (for a light-field model with no `slot_reach` of its own;
-    /// 0: every slot on every pixel). Slots draw near their frames, and most of a step's
-    /// light-field evaluations are far ones: the default takes 1.6× less CPU time in the
-    /// default encoding for +0.01 dB on held-out scenes; the result is judged and rendered with
-    /// all of the model's slots (docs/speed.md).
+    /// While encoding (refinement; with one input image also judging the tries and the
+    /// redundant slots), a slot is left out of the pixels whose ray passes farther than D units
+    /// from its frame origin (for a light-field model with no `slot_reach` of its own; 0: every
+    /// slot on every pixel). Slots draw near their frames, and most light-field evaluations are
+    /// far ones: the default takes 1.8–2.1× less CPU time in the default encoding for +0.007 dB on
+    /// held-out scenes; the codes are rendered with all of the model's slots (docs/speed.md).
     #[arg(long, default_value_t = crate::encode::refine::DEFAULT_REFINE_SLOT_REACH, value_name = "D", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_slot_reach: f64,
 }

@@ -25,7 +25,7 @@ pub mod view;
 use crate::camera::{Frame, Intrinsics};
 use crate::codes::{Codes, Slot};
 use crate::image_io::RgbImage32;
-use crate::model::Colf;
+use crate::model::{Colf, Config};
 use anyhow::{bail, Result};
 pub use redundant::drop_redundant_slots;
 use refine::{RefineOptions, RefineReport};
@@ -137,7 +137,10 @@ pub fn encode_image_report(
     let view = InputView::new(&camera, image);
     // 1–2. One pass per try, the best kept. Judged before refinement: refining every try and
     // judging after it scored the same on the held-out scenes at `tries` times the cost.
-    let (mut slots, mut background) = best_of_tries(model, &view, opts)?;
+    // The working renders (judging tries and redundant slots, refinement) leave out the far
+    // shadow lines and slots (`RefineOptions::reached_config`); the codes are exact.
+    let reached = opts.refine.reached_config(model.config());
+    let (mut slots, mut background) = best_of_tries(model, &view, opts, reached.as_ref())?;
     // 3. After pruning: the kept slots learn to cover what the dropped ones rendered.
     let report = if opts.refine.steps > 0 {
         Some(refine::refine_slots(
@@ -152,7 +155,14 @@ pub fn encode_image_report(
     };
     // 4. After refinement: dropping slots before it and refining the rest scored worse on the
     // held-out scenes (`docs/refinement.md`); after it, the survivors already draw the objects.
-    let slots = drop_redundant_slots(model, slots, &background, &[&view], opts.redundant_mse)?;
+    let slots = drop_redundant_slots(
+        model,
+        slots,
+        &background,
+        &[&view],
+        opts.redundant_mse,
+        reached.as_ref(),
+    )?;
     Ok((
         Codes {
             slots,
@@ -164,11 +174,13 @@ pub fn encode_image_report(
 }
 
 /// Step 2: [`encode_once`] with seeds `seed`, `seed + 1`, … (`tries` of them); the encoding
-/// whose slots render the input view with the least error.
+/// whose slots render the input view with the least error (rendered within `reached`'s bounds,
+/// see [`InputView::mse`]).
 pub fn best_of_tries(
     model: &Colf,
     view: &InputView,
     opts: &EncodeOptions,
+    reached: Option<&Config>,
 ) -> Result<(Vec<Slot>, Vec<f32>)> {
     if opts.tries == 1 {
         return encode_once(model, view, opts, opts.seed);
@@ -177,7 +189,7 @@ pub fn best_of_tries(
     for t in 0..opts.tries {
         let (slots, background) = encode_once(model, view, opts, opts.seed.wrapping_add(t as u64))?;
         let (latents, frames) = latents_and_frames(&slots);
-        let error = view.mse(model, &latents, &background, &frames)?;
+        let error = view.mse(model, &latents, &background, &frames, reached)?;
         if best.as_ref().is_none_or(|(e, _, _)| error < *e) {
             best = Some((error, slots, background));
         }
@@ -281,7 +293,7 @@ mod tests {
                 let codes = encode_image(&model, &img, &options(seed, 1)).unwrap();
                 let (latents, frames) = latents_and_frames(&codes.slots);
                 let error = InputView::new(&camera, &img)
-                    .mse(&model, &latents, &codes.background, &frames)
+                    .mse(&model, &latents, &codes.background, &frames, None)
                     .unwrap();
                 (error, codes)
             })
@@ -310,22 +322,25 @@ mod tests {
         } = encode_image(&model, &img, &opts).unwrap();
         let error = |slots: &[Slot], background: &[f32]| {
             let (latents, frames) = latents_and_frames(slots);
-            view.mse(&model, &latents, background, &frames).unwrap()
+            view.mse(&model, &latents, background, &frames, None)
+                .unwrap()
         };
         let base = error(&all, &background);
         // No budget: every slot stays.
-        let kept = drop_redundant_slots(&model, all.clone(), &background, &[&view], 0.0).unwrap();
+        let kept =
+            drop_redundant_slots(&model, all.clone(), &background, &[&view], 0.0, None).unwrap();
         assert_eq!(kept, all);
         // Any budget: what is left renders the image within it, in the original order.
         for tolerance in [1e-5, 1e-3, 1e-2] {
-            let kept = drop_redundant_slots(&model, all.clone(), &background, &[&view], tolerance)
-                .unwrap();
+            let kept =
+                drop_redundant_slots(&model, all.clone(), &background, &[&view], tolerance, None)
+                    .unwrap();
             assert!(error(&kept, &background) <= base + tolerance, "{tolerance}");
             let mut rest = all.iter();
             assert!(kept.iter().all(|k| rest.any(|s| s == k)), "order kept");
         }
         // A budget as large as any error: no slot is needed.
-        let kept = drop_redundant_slots(&model, all, &background, &[&view], 1.0).unwrap();
+        let kept = drop_redundant_slots(&model, all, &background, &[&view], 1.0, None).unwrap();
         assert!(kept.is_empty());
     }
 

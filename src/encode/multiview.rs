@@ -103,8 +103,10 @@ pub fn encode_views(
     // 1. Each view's own encoding: the best of its tries, less the slots it does not need.
     let mut proposals = Vec::with_capacity(inputs.len());
     for (input, view) in inputs.iter().zip(&views) {
-        let (slots, background) = best_of_tries(model, view, &single(input))?;
-        let slots = drop_redundant_slots(model, slots, &background, &[view], opts.redundant_mse)?;
+        // Judged with the model's own slots and shadows: the matching below compares them.
+        let (slots, background) = best_of_tries(model, view, &single(input), None)?;
+        let slots =
+            drop_redundant_slots(model, slots, &background, &[view], opts.redundant_mse, None)?;
         report.proposed.push(slots.len());
         proposals.push((slots, background));
     }
@@ -167,7 +169,7 @@ pub fn encode_views(
         slots = super::residual::keep_agreed(model, slots, &background, &all, first_added)?;
     }
     // 5. The slots no view needs dropped.
-    let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse)?;
+    let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse, None)?;
     let codes = Codes {
         slots,
         background,

@@ -8,20 +8,23 @@
 use super::latents_and_frames;
 use super::view::InputView;
 use crate::codes::Slot;
-use crate::model::Colf;
+use crate::model::{Colf, Config};
 use crate::render::fast::FastRenderer;
 use anyhow::Result;
 
 /// Drops the slots `views` do not need: in order of attention mass (smallest first), a slot
 /// is removed when the slots left still render the views with a mean squared error (the mean
 /// of the views') at most `tolerance` above that of all `slots`. The bound is on the total, so
-/// many small removals cannot add up to a visible loss.
+/// many small removals cannot add up to a visible loss. With `reached` (the model's config with
+/// the encoding's reaches, `RefineOptions::reached_config`) the renders leave out the far shadow
+/// lines and slots it bounds.
 pub fn drop_redundant_slots(
     model: &Colf,
     slots: Vec<Slot>,
     background: &[f32],
     views: &[&InputView],
     tolerance: f64,
+    reached: Option<&Config>,
 ) -> Result<Vec<Slot>> {
     if tolerance <= 0.0 || slots.is_empty() || views.is_empty() {
         return Ok(slots);
@@ -35,7 +38,10 @@ pub fn drop_redundant_slots(
         None
     } else {
         let prepared = model.prepare(&latents, background)?;
-        let renderer = FastRenderer::new(model, &prepared, &frames)?;
+        let mut renderer = FastRenderer::new(model, &prepared, &frames)?;
+        if let Some(reached) = reached {
+            renderer.set_reaches(reached);
+        }
         let values = views
             .iter()
             .map(|v| renderer.evaluate_fields(&v.compared.origins, &v.compared.dirs))
@@ -52,7 +58,7 @@ pub fn drop_redundant_slots(
                 .filter(|(_, &k)| k)
                 .map(|((l, f), _)| (l.clone(), *f))
                 .unzip();
-            return view.mse(model, &latents, background, &frames);
+            return view.mse(model, &latents, background, &frames, reached);
         };
         let fields: Vec<bool> = std::iter::once(true).chain(keep.iter().copied()).collect();
         let out = renderer.composite(&values[vi], &fields)?;

@@ -3,7 +3,7 @@
 
 use crate::camera::Frame;
 use crate::image_io::RgbImage32;
-use crate::model::Colf;
+use crate::model::{Colf, Config};
 use crate::render::fast::FastRenderer;
 use anyhow::Result;
 use glam::{DMat4, DVec3};
@@ -80,21 +80,22 @@ impl<'a> InputView<'a> {
     /// The mean squared colour error, on the compared pixels, of slots (`fg_latents` in frames
     /// `slot_to_world`, and `bg_latent`) rendered by the fast renderer (the reference path's
     /// function to float rounding, at a third of its time: the tries of an encoding are judged
-    /// this way).
+    /// this way). With `reached` (the model's config with an encoding's reaches,
+    /// `RefineOptions::reached_config`), the far shadow lines and slots it bounds are left out.
     pub fn mse(
         &self,
         model: &Colf,
         fg_latents: &[Vec<f32>],
         bg_latent: &[f32],
         slot_to_world: &[DMat4],
+        reached: Option<&Config>,
     ) -> Result<f64> {
         let prepared = model.prepare(fg_latents, bg_latent)?;
-        let out = FastRenderer::new(model, &prepared, slot_to_world)?.render(
-            &self.compared.origins,
-            &self.compared.dirs,
-            None,
-            None,
-        )?;
+        let mut renderer = FastRenderer::new(model, &prepared, slot_to_world)?;
+        if let Some(reached) = reached {
+            renderer.set_reaches(reached);
+        }
+        let out = renderer.render(&self.compared.origins, &self.compared.dirs, None, None)?;
         Ok(self.compared.mse(&out.rgb))
     }
 }

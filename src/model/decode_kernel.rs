@@ -1164,8 +1164,11 @@ impl CustomOp3 for DecodeOp {
         let ch = sh.channels().count();
         let mut out = vec![0f32; sh.scenes * sh.rays * ch];
         let saved = self.with_rays(storage_f32(rs, rl, "rays")?, |rays| {
+            // One field a task: fields differ in size (a slot's reach, the background on every
+            // ray), so rayon's default halving left one thread idle behind a heavy batch.
             let passes: Vec<FieldPass> = (0..sh.scenes * sh.fields)
                 .into_par_iter()
+                .with_max_len(1)
                 .map(|u| self.field_forward(u, fields, shared, rays))
                 .collect();
             let units = ray_units(sh);
@@ -1305,6 +1308,7 @@ impl DecodeOp {
             .zip(coord_pieces)
             .zip(line_pieces)
             .enumerate()
+            .with_max_len(1)
             .map(|(u, ((d_params, d_x), d_l))| {
                 let grads = FieldGrads {
                     color: &d_color[u * r_n * 3..(u + 1) * r_n * 3],

@@ -443,6 +443,19 @@ impl FastRenderer {
         }
     }
 
+    /// Leaves out the shadow lines and the (ray, slot) pairs that `reached` — the model's
+    /// config with other reaches, as `RefineOptions::reached_config` gives — bounds
+    /// (`Config::shadow_reach`, `Config::slot_reach`), instead of the model's own bounds: a
+    /// cheaper, approximate render for judging encodings. No effect on a volumetric model.
+    pub fn set_reaches(&mut self, reached: &Config) {
+        if let Kind::LightField(lf) = &mut self.kind {
+            lf.slot_reach = reached.slot_reach_bound();
+            if let Some(shadow) = &mut lf.shadow {
+                shadow.reach = reached.shadow_reach_bound();
+            }
+        }
+    }
+
     /// Number of fields 1 + K.
     pub fn fields(&self) -> usize {
         self.inverses.len()
