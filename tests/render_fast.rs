@@ -504,10 +504,9 @@ fn reaches_set_on_a_renderer_match_a_model_with_them() {
     let (frames, origins, dirs) = scene(4, 500);
     let render = |model: &Colf, reached: Option<&Config>| {
         let prepared = model.prepare(&latents, &noise(64, 7)).unwrap();
-        let mut renderer = FastRenderer::new(model, &prepared, &frames).unwrap();
-        if let Some(reached) = reached {
-            renderer.set_reaches(reached);
-        }
+        let renderer = FastRenderer::new(model, &prepared, &frames)
+            .unwrap()
+            .within_reaches(reached);
         let values = renderer.evaluate_fields(&origins, &dirs).unwrap();
         (
             renderer.render(&origins, &dirs, None, None).unwrap(),

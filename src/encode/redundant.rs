@@ -38,10 +38,7 @@ pub fn drop_redundant_slots(
         None
     } else {
         let prepared = model.prepare(&latents, background)?;
-        let mut renderer = FastRenderer::new(model, &prepared, &frames)?;
-        if let Some(reached) = reached {
-            renderer.set_reaches(reached);
-        }
+        let renderer = FastRenderer::new(model, &prepared, &frames)?.within_reaches(reached);
         let values = views
             .iter()
             .map(|v| renderer.evaluate_fields(&v.compared.origins, &v.compared.dirs))

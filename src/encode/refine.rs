@@ -105,18 +105,15 @@ impl RefineOptions {
         let add_shadow_reach =
             self.shadow_reach > 0.0 && cfg.shadow_light.is_some() && cfg.shadow_reach == 0.0;
         let add_slot_reach = self.slot_reach > 0.0 && cfg.slot_reach == 0.0 && !cfg.is_volumetric();
-        (add_shadow_reach || add_slot_reach).then(|| Config {
-            shadow_reach: if add_shadow_reach {
-                self.shadow_reach
-            } else {
-                cfg.shadow_reach
-            },
-            slot_reach: if add_slot_reach {
-                self.slot_reach
-            } else {
-                cfg.slot_reach
-            },
-            ..cfg.clone()
+        (add_shadow_reach || add_slot_reach).then(|| {
+            let mut reached = cfg.clone();
+            if add_shadow_reach {
+                reached.shadow_reach = self.shadow_reach;
+            }
+            if add_slot_reach {
+                reached.slot_reach = self.slot_reach;
+            }
+            reached
         })
     }
 }
@@ -1141,12 +1138,8 @@ mod tests {
             let (mut fg, mut bg) = (latents(2, d, 2), vec![0.0; d]);
             let mut frames = vec![cam.camera_to_world; 2];
             let opts = RefineOptions {
-                steps: 3,
-                lr: 0.05,
-                rays: 16 * 16,
-                frame_lr: 0.0,
                 shadow_reach: reach,
-                ..Default::default()
+                ..three_steps_on_every_pixel()
             };
             refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).map(|_| fg)
         };
@@ -1160,6 +1153,17 @@ mod tests {
         assert_eq!(refined(&dark, 1.0).unwrap(), refined(&dark, 0.0).unwrap());
         let err = refined(&lit, -1.0).unwrap_err();
         assert!(err.to_string().contains("shadow reach"), "{err}");
+    }
+
+    /// Three steps on every pixel of a 16² view, fixed frames: the reach tests' refinement.
+    fn three_steps_on_every_pixel() -> RefineOptions {
+        RefineOptions {
+            steps: 3,
+            lr: 0.05,
+            rays: 16 * 16,
+            frame_lr: 0.0,
+            ..Default::default()
+        }
     }
 
     /// A slot reach during refinement changes the refined latents of a model without one (the
@@ -1178,12 +1182,8 @@ mod tests {
             let (mut fg, mut bg) = (latents(2, d, 2), vec![0.0; d]);
             let mut frames = vec![ahead; 2];
             let opts = RefineOptions {
-                steps: 3,
-                lr: 0.05,
-                rays: 16 * 16,
-                frame_lr: 0.0,
                 slot_reach: reach,
-                ..Default::default()
+                ..three_steps_on_every_pixel()
             };
             refine_latents(&model, &mut fg, &mut bg, &mut frames, &cam, &image, &opts).map(|_| fg)
         };

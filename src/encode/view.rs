@@ -91,10 +91,7 @@ impl<'a> InputView<'a> {
         reached: Option<&Config>,
     ) -> Result<f64> {
         let prepared = model.prepare(fg_latents, bg_latent)?;
-        let mut renderer = FastRenderer::new(model, &prepared, slot_to_world)?;
-        if let Some(reached) = reached {
-            renderer.set_reaches(reached);
-        }
+        let renderer = FastRenderer::new(model, &prepared, slot_to_world)?.within_reaches(reached);
         let out = renderer.render(&self.compared.origins, &self.compared.dirs, None, None)?;
         Ok(self.compared.mse(&out.rgb))
     }

@@ -446,14 +446,16 @@ impl FastRenderer {
     /// Leaves out the shadow lines and the (ray, slot) pairs that `reached` — the model's
     /// config with other reaches, as `RefineOptions::reached_config` gives — bounds
     /// (`Config::shadow_reach`, `Config::slot_reach`), instead of the model's own bounds: a
-    /// cheaper, approximate render for judging encodings. No effect on a volumetric model.
-    pub fn set_reaches(&mut self, reached: &Config) {
-        if let Kind::LightField(lf) = &mut self.kind {
+    /// cheaper, approximate render for judging encodings. None, or a volumetric model: the
+    /// renderer as it is.
+    pub fn within_reaches(mut self, reached: Option<&Config>) -> Self {
+        if let (Some(reached), Kind::LightField(lf)) = (reached, &mut self.kind) {
             lf.slot_reach = reached.slot_reach_bound();
             if let Some(shadow) = &mut lf.shadow {
                 shadow.reach = reached.shadow_reach_bound();
             }
         }
+        self
     }
 
     /// Number of fields 1 + K.
