@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default model-paper model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default data-paper model-paper resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -422,88 +422,88 @@ model-both: build
 
 # The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the bundled
 # default model grown to the `paper` preset's decoder (light fields 2×256 → 64 features,
-# colour/ordering heads and compositor 3×128; hypernetworks 64 wide) without changing what it
+# colour/ordering heads and compositor 3×128; hypernetworks 128 wide) without changing what it
 # computes (`colf-train --init` with `--set`, src/model/grow.rs: new units start with zero
-# outgoing weights, new layers as the identity), then trained on the rest of the paper's
-# schedule on model-both's mix of looks without labels. Growing skips the ~88,000 steps of the
-# default model's recipe that a fresh paper-sized decoder needs to reach the same point (run p
-# did them: level with the small decoder after them, docs/training-log.md). Runs for days on one
-# core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and re-running
-# resumes where it stopped (nohup, one thread: see docs/training.md). The result stays in
-# $(PAPER_RUN)/p9.safetensors until it is shown better than the bundled default.
+# outgoing weights, new layers as the identity), then trained on the paper's 128² schedule on a
+# mix of looks without labels. Growing skips the ~88,000 steps of the default model's recipe that
+# a fresh paper-sized decoder needs to reach the same point (docs/training-log.md). Runs for days
+# on one core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and
+# re-running resumes where it stopped (nohup, one thread: see docs/training.md). The result stays
+# in $(PAPER_RUN)/p10.safetensors until it is shown better than the bundled default.
+#
+# p10 is runs p2's stages p6–p9 in one (the machine lost them at p9's step ≈ 22,000, 2026-11-28):
+# each `--set` below was added by one of those stages, for the reason given beside it, and grows
+# the same from the bundled model all at once.
 PAPER_RUN ?= $(HOME)/colf-runs/paper
 PAPER_INIT ?= models/default.safetensors
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
-  --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3 \
-  --set hypernet_hidden=64
-# p6: 12,000 steps at 64², for the new units to learn at the resolution the model was trained
-# at (run p's p6, a fresh decoder after model-both, was level on held-out scenes from about step
-# 20,000 at 5e-5); p7 and p8: the paper's 60,000 at 128² on the same mix rendered at 128², where the
-# detail the wider decoder is for shows. Scored at the end on 100 held-out 128² scenes of each look
-# ($(PAPER_RUN)/p9-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
+  --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3
+# Both hypernetworks 128 wide, the `paper` preset's: every light field a hypernetwork makes is an
+# affine function of its H hidden units; latents fitted to all four views of a Blender test scene
+# drew it at 28.2 dB, the best point of the 64-wide span at 29.5 dB, free light-field weights at
+# 38 dB (`examples/capacity_fit`, docs/training-log.md, twelfth session): the span is what limits.
+PAPER_HYPERNET := --set hypernet_hidden=128
+# One hidden layer per light-field layer in each hypernetwork (as SIREN's and LFN's: each
+# layer's heads read 128 hidden units of their own, the light fields span 3 × 128 dimensions; no
+# extra work per ray): on p7's step-8,000 snapshot the best point of that span drew two Blender
+# test scenes at 33.3 dB against 32.0 for the shared one (fourteenth session).
+PAPER_PER_LAYER := --set hypernet_per_layer=true
+# A slot's shadow lines evaluated only within 3 units of it (`shadow_reach`, docs/model.md):
+# clevr567's objects and their shadows lie well within, and the far lines were most of the
+# shadow work (docs/speed.md).
+PAPER_REACH := --set shadow_reach=3
+# Each slot evaluated only on the rays that pass within 3 units of its frame origin (`slot_reach`):
+# on p8's snapshot three quarters of the slots' light-field evaluations lay beyond, where they
+# held weights averaging 7·10⁻⁴; a step takes 0.65–0.70 s instead of 1.0–1.2 (docs/speed.md).
+PAPER_SLOT_REACH := --set slot_reach=3
+PAPER_SETS := $(PAPER_DECODER) $(PAPER_HYPERNET) $(PAPER_PER_LAYER) $(PAPER_REACH) $(PAPER_SLOT_REACH)
 PAPER_LATE := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
-# A slot's shadow lines are evaluated only within 3 units of it (`shadow_reach`, docs/model.md):
-# clevr567's objects and their shadows lie well within, and the far lines were most of the
-# shadow work (docs/speed.md). p7 inherits it from p6's config.
-PAPER_REACH := --set shadow_reach=3
 PAPER_128 := $(PAPER_RUN)/data128
-# p7 starts by widening both hypernetworks to the `paper` preset's 128 hidden units. Every
-# light field a hypernetwork makes is an affine function of its H hidden units: latents fitted
-# to all four views of a Blender test scene draw it at 28.2 dB, the best point of that
-# 64-dimensional span at 29.5 dB, and free light-field weights at 38 dB
-# (`examples/capacity_fit`, docs/training-log.md, twelfth session): the span is what limits.
-PAPER_HYPERNET := --set hypernet_hidden=128
-# p7 ran 10,000 steps so; p8 goes on with one hidden layer per light-field layer in each
-# hypernetwork (`hypernet_per_layer`, as SIREN's and LFN's hypernetworks: each layer's heads read
-# 128 hidden units of their own, the light fields span 3 × 128 dimensions; no extra work per ray).
-# Grown from p7 it renders the same; on p7's step-8,000 snapshot the best point of that span drew
-# two Blender test scenes at 33.3 dB against 32.0 for the shared one (docs/training-log.md,
-# fourteenth session).
-PAPER_PER_LAYER := --set hypernet_per_layer=true
-# p8 ran 4,000 steps so; p9 goes on with each slot evaluated only on the rays that pass within 3
-# units of its frame origin (`slot_reach`, docs/model.md): on p8's snapshot three quarters of
-# the slots' light-field evaluations lay beyond, where they held weights averaging 7·10⁻⁴; a step
-# takes 0.65–0.70 s instead of 1.0–1.2 (docs/speed.md). p7 + p8 + p9 make the paper's 60,000
-# steps at 128².
-PAPER_SLOT_REACH := --set slot_reach=3
-model-paper: build
-	$(MAKE) data-both UNSUP_RUN=$(PAPER_RUN)/unsup BOTH_RUN=$(PAPER_RUN)/both
-	test -f $(PAPER_RUN)/p7.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_RUN)/both/data/mix \
-	  --eval-data $(PAPER_RUN)/both/data/val --out $(PAPER_RUN)/p6.safetensors --steps 12000 \
-	  --lr 5e-5 --warmup 200 --decay-from 8000 --final-lr 1e-5 --seed 71 \
-	  $(call resume_or_init,$(PAPER_RUN)/p6.safetensors,$(PAPER_INIT) $(PAPER_DECODER) $(PAPER_REACH))
+# The training mix at 128², without mask files: 600 Blender scenes, 600 analytic ones and 400
+# analytic ones of varied look and cameras (`--randomize-look --randomize-camera`: floors,
+# lights, exposure, noise, camera distance and elevation; docs/synth.md), so that the model does
+# not learn colf-synth's one look and camera; 16 Blender validation scenes scored as it trains;
+# then the held-out test scenes of both looks, made after the training data so that training
+# can start first.
+define paper_train_data
 	@mkdir -p $(PAPER_128)
 	$(call unlabelled_set,$(PAPER_128)/blender,600,--engine blender --size 128)
 	$(call unlabelled_set,$(PAPER_128)/analytic,600,--size 128)
-	$(call unlabelled_set,$(PAPER_128)/randomised,400,--randomize-look --seed 51 --size 128)
+	$(call unlabelled_set,$(PAPER_128)/varied,400,--randomize-look --randomize-camera --seed 51 --size 128)
 	$(call synth_set,$(PAPER_128)/val,--engine blender --scenes 16 --seed 7 --size 128)
-	$(call synth_set,$(PAPER_128)/test-analytic,--scenes 100 --split test --size 128)
 	test -d $(PAPER_128)/mix || scripts/mix_scenes.sh $(PAPER_128)/mix b:$(PAPER_128)/blender:600 \
-	  a:$(PAPER_128)/analytic:600 r:$(PAPER_128)/randomised:400
-	test -f $(PAPER_RUN)/p8.safetensors.ckpt || \
+	  a:$(PAPER_128)/analytic:600 v:$(PAPER_128)/varied:400
+endef
+define paper_test_data
+	$(call synth_set,$(PAPER_128)/test-analytic,--scenes 100 --split test --size 128)
+	$(call synth_set,$(PAPER_128)/test-blender,--engine blender --scenes 100 --split test --size 128)
+endef
+data-paper: build
+	$(paper_train_data)
+	$(paper_test_data)
+# p10: the paper's 60,000 steps at 128² (Adam 5e-5, a half cosine to 5e-6 from step 40,000);
+# scored at the end on 100 held-out 128² scenes of each look
+# ($(PAPER_RUN)/p10-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
+model-paper: build
+	$(paper_train_data)
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
-	  --out $(PAPER_RUN)/p7.safetensors --steps 10000 --lr 5e-5 --warmup 200 --decay-from 40000 \
-	  --final-lr 5e-6 --seed 72 \
-	  $(call resume_or_init,$(PAPER_RUN)/p7.safetensors,$(PAPER_RUN)/p6.safetensors $(PAPER_HYPERNET))
-	test -f $(PAPER_RUN)/p9.safetensors.ckpt || \
-	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
-	  --out $(PAPER_RUN)/p8.safetensors --steps 4000 --lr 5e-5 --warmup 200 --decay-from 30000 \
-	  --final-lr 5e-6 --seed 78 \
-	  $(call resume_or_init,$(PAPER_RUN)/p8.safetensors,$(PAPER_RUN)/p7.safetensors $(PAPER_PER_LAYER))
-	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
-	  --out $(PAPER_RUN)/p9.safetensors --steps 46000 --lr 5e-5 --warmup 100 --decay-from 26000 \
-	  --final-lr 5e-6 --seed 79 \
-	  $(call resume_or_init,$(PAPER_RUN)/p9.safetensors,$(PAPER_RUN)/p8.safetensors $(PAPER_SLOT_REACH))
-	$(RELEASE)/colf-train plot $(PAPER_RUN)/p6.safetensors.log.jsonl \
-	  $(PAPER_RUN)/p7.safetensors.log.jsonl $(PAPER_RUN)/p8.safetensors.log.jsonl \
-	  $(PAPER_RUN)/p9.safetensors.log.jsonl \
-	  --label p6 --label p7 --label p8 --label p9 -o $(PAPER_RUN)/training.png
-	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p9.safetensors,$(PAPER_RUN)/p9-analytic128.json)
-	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p9.safetensors,$(PAPER_RUN)/p9-analytic128-fast.json,--fast)
-	$(call eval_json,$(PAPER_RUN)/both/data/test128,$(PAPER_RUN)/p9.safetensors,$(PAPER_RUN)/p9-blender128.json)
-	$(call eval_json,$(PAPER_RUN)/both/data/test128,$(PAPER_RUN)/p9.safetensors,$(PAPER_RUN)/p9-blender128-fast.json,--fast)
+	  --out $(PAPER_RUN)/p10.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
+	  --final-lr 5e-6 --seed 83 \
+	  $(call resume_or_init,$(PAPER_RUN)/p10.safetensors,$(PAPER_INIT) $(PAPER_SETS))
+	$(RELEASE)/colf-train plot $(PAPER_RUN)/p10.safetensors.log.jsonl -o $(PAPER_RUN)/training.png
+	$(paper_test_data)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-analytic128.json)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-analytic128-fast.json,--fast)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-blender128.json)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-blender128-fast.json,--fast)
+
+# The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
+# target without a running `make TARGET` is started in the background with one thread, its
+# output appended to its log. Run it at the start of every session. RESUME_RUNS lists them.
+RESUME_RUNS ?= model-paper:$(PAPER_RUN)/make.log model-room-chair:$(ROOM_RUN)/room-chair.log
+resume:
+	scripts/resume_runs.sh $(RESUME_RUNS)
 
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): a clevr567 model
 # adapted to each room set without labels, the paper's curriculum — 128,000 steps at 64² (its
@@ -511,20 +511,19 @@ model-paper: build
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT, is make model-paper's p7 — the paper-sized decoder after 10,000 steps on clevr567 at
-# 128² (the bundled small decoder's own run stalled at 23.5 dB on chairs; the bundled model grown
-# instead, the earlier start, must first learn its new units) — with a hidden layer per
-# light-field layer in each hypernetwork as p8's, and shadow lines and slots within 3 units
-# (ROOM_SETS; a chair is about 1 unit wide, 2 high). Held-out: 16 validation scenes (64², then 128²) scored as it
-# trains, 100 test scenes at 128² at the end. Data in $(ROOM_DATA)/PRESET/data, checkpoints and
-# logs in $(ROOM_RUN)/PRESET, outside the work tree; re-running resumes. Run with one thread
-# beside the other long run:
+# ROOM_INIT, is make model-paper's p10 after 4,000 steps on clevr567 at 128² (its
+# p10.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
+# each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
+# wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
+# model grown, the earlier start, must first learn its new units. Held-out: 16 validation scenes
+# (64², then 128²) scored as it trains, 100 test scenes at 128² at the end. Data in
+# $(ROOM_DATA)/PRESET/data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the work tree;
+# re-running resumes. Run with one thread beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
-ROOM_INIT ?= $(PAPER_RUN)/p7.safetensors
-ROOM_SETS := $(PAPER_DECODER) $(PAPER_HYPERNET) $(PAPER_PER_LAYER) --set shadow_reach=3 \
-  $(PAPER_SLOT_REACH)
+ROOM_INIT ?= $(PAPER_RUN)/p10.step4000.safetensors
+ROOM_SETS := $(PAPER_SETS)
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
 # $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset.
@@ -537,7 +536,7 @@ define room_model
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
 	  --size 128)
 	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
-	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to its p7 stage, or set ROOM_INIT" >&2; exit 1; }
+	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to p10's step 4,000, or set ROOM_INIT" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \

@@ -632,6 +632,14 @@ fn bad_arguments_fail_with_the_right_exit_code() {
         vec!["--scenes", "2", "--engine", "blender", "--randomize-look"],
         vec!["--scenes", "2", "--engine", "blender", "--preset", "city"],
         vec!["--scenes", "2", "--engine", "blender", "--samples", "0"],
+        vec![
+            "--scenes",
+            "2",
+            "--preset",
+            "room-chair",
+            "--randomize-camera",
+        ],
+        vec!["--scenes", "2", "--preset", "city", "--randomize-camera"],
     ] {
         let o = synth().arg("--out").arg(&out).args(&args).output().unwrap();
         assert_eq!(o.status.code(), Some(2), "{args:?}: {o:?}");
@@ -741,6 +749,71 @@ fn randomized_look_keeps_layouts_cameras_and_masks() {
         "{floors:?}"
     );
     assert!(floors[0] != floors[1], "{floors:?}");
+}
+
+/// `--randomize-camera`: seeded, the same objects and light as without it, each view's camera
+/// at its own distance and elevation within the documented ranges (still looking at the
+/// centre), recorded in scene.json, transforms.json and dataset.json.
+#[test]
+fn randomized_cameras_keep_objects_and_vary_distance_and_elevation() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (plain, a, b) = (
+        tmp.path().join("plain"),
+        tmp.path().join("a"),
+        tmp.path().join("b"),
+    );
+    let args = ["--scenes", "3", "--size", "32", "--seed", "4"];
+    generate(&plain, &args);
+    generate(&a, &[&args[..], &["--randomize-camera"]].concat());
+    generate(&b, &[&args[..], &["--randomize-camera"]].concat());
+    assert!(files(&a) == files(&b), "same options gave different files");
+    let dataset: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(a.join("dataset.json")).unwrap()).unwrap();
+    assert_eq!(dataset["randomize_camera"], true);
+    let (mut distances, mut elevations) = (Vec::new(), Vec::new());
+    for s in 0..3 {
+        let (dp, da) = (
+            plain.join(format!("scene_{s:05}")),
+            a.join(format!("scene_{s:05}")),
+        );
+        let (jp, ja) = (scene_json(&dp), scene_json(&da));
+        assert_eq!(
+            jp["objects"].as_array().unwrap().len(),
+            ja["objects"].as_array().unwrap().len()
+        );
+        for (op, oa) in objects(&jp).iter().zip(objects(&ja)) {
+            assert_eq!(op.position, oa.position);
+            assert_eq!(op.color, oa.color);
+        }
+        assert_eq!(jp["light"], ja["light"]);
+        assert_ne!(
+            std::fs::read(dp.join("transforms.json")).unwrap(),
+            std::fs::read(da.join("transforms.json")).unwrap()
+        );
+        let frames = Cameras::read(da.join("transforms.json").to_str().unwrap()).unwrap();
+        for (v, camera) in ja["cameras"].as_array().unwrap().iter().enumerate() {
+            let (d, e) = (
+                camera["distance"].as_f64().unwrap(),
+                camera["elevation_degrees"].as_f64().unwrap(),
+            );
+            assert!((0.8 * 12.4..=1.25 * 12.4).contains(&d), "{camera}");
+            assert!((25.0..=55.0).contains(&e), "{camera}");
+            // The written camera stands there, looking at the centre.
+            let c2w = frames.frames[v].camera_to_world;
+            let eye = c2w.w_axis.truncate();
+            assert!((eye.length() - d).abs() < 1e-6, "{eye} {d}");
+            assert!((eye.z / d - e.to_radians().sin()).abs() < 1e-6);
+            let forward = -c2w.z_axis.truncate();
+            assert!(forward.dot(-eye.normalize()) > 1.0 - 1e-9);
+            distances.push(d);
+            elevations.push(e);
+        }
+    }
+    let spread = |v: &[f64]| {
+        v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
+    };
+    assert!(spread(&distances) > 1.0, "{distances:?}");
+    assert!(spread(&elevations) > 5.0, "{elevations:?}");
 }
 
 #[test]

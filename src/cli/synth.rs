@@ -37,7 +37,8 @@ row, the others stand anywhere from the block's start to 5 units before the back
 Room-Chair: 3-4 chairs of one procedural design in a walled 16 x 16 room on one of 3 floor \
 textures; cameras at distance 8.5, elevation 35 degrees, uniform azimuth, looking at the room's \
 centre), room-diverse (after uORF's Room-Diverse: as room-chair with chairs of 1200 procedural \
-designs and 50 floor textures). Cameras are redrawn (up to 20 times) until every object covers \
+designs and 50 floor textures); --randomize-camera varies the CLEVR presets' camera distance \
+and elevation. Cameras are redrawn (up to 20 times) until every object covers \
 a mask pixel in some view.\n\n\
 Without --scenes the paper's dataset size is generated: 1000 train and 500 test scenes \
 (room-diverse: 5000 train; city-block: 500 train, and its test split needs --scenes).",
@@ -106,6 +107,12 @@ pub struct SynthArgs {
     /// without it.
     #[arg(long)]
     pub randomize_look: bool,
+    /// CLEVR presets (clevr567, packed11, clevr567-textured), any engine: vary each view's
+    /// camera — distance 12.4 times 0.8-1.25 and elevation 25-55 degrees, still looking at
+    /// the centre — from a stream of its own: objects and light stay as without it (and the
+    /// azimuths, unless a view had to be redrawn).
+    #[arg(long)]
+    pub randomize_camera: bool,
     /// Write into a folder that is not empty: the files of an earlier colf-synth run there
     /// (dataset.json, scene_NNNNN folders, uORF-layout files) are removed first, other files
     /// are left alone. Without it a non-empty folder is refused, so stale scenes cannot mix
@@ -132,6 +139,18 @@ impl SynthArgs {
         self.move_spec()?;
         if self.engine == EngineName::Blender && self.randomize_look {
             return Err("--randomize-look works with --engine analytic only".to_string());
+        }
+        if self.randomize_camera
+            && !matches!(
+                self.preset,
+                Preset::Clevr567 | Preset::Packed11 | Preset::Clevr567Textured
+            )
+        {
+            return Err(format!(
+                "--randomize-camera varies the cameras of clevr567, packed11 and \
+                 clevr567-textured, not {}",
+                self.preset.name()
+            ));
         }
         if self.engine == EngineName::Blender && !crate::synth::blender::supports(self.preset) {
             return Err(format!(
@@ -182,6 +201,7 @@ impl SynthArgs {
             },
             layout: self.layout,
             randomize_look: self.randomize_look,
+            randomize_camera: self.randomize_camera,
             replace: self.force,
         })
     }

@@ -95,6 +95,9 @@ pub struct SynthOptions {
     /// Randomise each scene's floor albedo, light, exposure and sensor noise (analytic
     /// engine; see [`look`]).
     pub randomize_look: bool,
+    /// Vary each CLEVR view's camera distance and elevation (any engine; see
+    /// [`presets::sample_cameras`]); objects and light stay as without it.
+    pub randomize_camera: bool,
     /// Replace the files of an earlier run in `out` (see [`clear_output`]) instead of refusing
     /// a folder that is not empty.
     pub replace: bool,
@@ -103,13 +106,14 @@ pub struct SynthOptions {
 impl SynthOptions {
     /// Scene `index` of these options: objects, light and cameras (not yet rendered).
     pub fn sample(&self, index: u64) -> Result<SampledScene> {
-        sample(
+        sample_scene(
             self.preset,
             self.seed,
             self.split,
             index,
             self.size,
             self.views,
+            self.randomize_camera,
         )
     }
 }
@@ -146,6 +150,8 @@ pub const SCENE_FORMAT: &str = "colf-synth-scene/1";
 pub const DATASET_FORMAT: &str = "colf-synth/1";
 /// Camera redraws allowed to make every object visible in some view.
 const CAMERA_DRAWS: usize = 20;
+/// Tag of the varied cameras' stream (`SynthOptions::randomize_camera`).
+const CAMERA_STREAM_TAG: u64 = 0x4341_4d45_5241_0005;
 
 /// The seed of scene `index` of `split`: a mix of the three, so that train and test streams
 /// (and neighbouring indices, and neighbouring base seeds) are unrelated.
@@ -207,13 +213,31 @@ pub fn sample(
     size: u32,
     views: usize,
 ) -> Result<SampledScene> {
+    sample_scene(preset, seed, split, index, size, views, false)
+}
+
+/// [`sample`], with each CLEVR view's camera distance and elevation drawn from a stream of
+/// their own when `randomize_camera` (derived from the scene seed, so the objects and the light
+/// are those of the same scene without it, and the azimuths too unless the cameras had to be
+/// redrawn).
+pub fn sample_scene(
+    preset: Preset,
+    seed: u64,
+    split: Split,
+    index: u64,
+    size: u32,
+    views: usize,
+    randomize_camera: bool,
+) -> Result<SampledScene> {
     let scene_seed = scene_seed(seed, split, index);
     let mut rng = StdRng::seed_from_u64(scene_seed);
+    let mut camera_rng =
+        randomize_camera.then(|| StdRng::seed_from_u64(mix64(scene_seed ^ CAMERA_STREAM_TAG)));
     let mut scene = presets::sample_scene(preset, &mut rng);
     let tracer = Tracer::new(&scene, None)?;
     let mut best: Option<(usize, Vec<scene::CameraPlacement>, Vec<Vec<u64>>)> = None;
     for _ in 0..CAMERA_DRAWS {
-        let cameras = presets::sample_cameras(preset, &scene, &mut rng, views);
+        let cameras = presets::sample_cameras(preset, &scene, &mut rng, views, camera_rng.as_mut());
         let mut pixels = vec![vec![0u64; views]; scene.objects.len()];
         for (v, placement) in cameras.iter().enumerate() {
             for id in tracer.render_mask(&frame_of(placement, size)?) {
@@ -602,6 +626,9 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     }
     if args.randomize_look {
         dataset["randomize_look"] = json!(true);
+    }
+    if args.randomize_camera {
+        dataset["randomize_camera"] = json!(true);
     }
     writer::write_json(&out.join("dataset.json"), &dataset)?;
     Ok(n)

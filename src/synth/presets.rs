@@ -80,6 +80,11 @@ impl Preset {
 /// clevr567 cameras: distance from the origin and elevation, degrees.
 pub const CLEVR_CAMERA_DISTANCE: f64 = 12.4;
 pub const CLEVR_CAMERA_ELEVATION: f64 = 40.0;
+/// With varied cameras (`SynthOptions::randomize_camera`), a CLEVR view's distance is
+/// CLEVR_CAMERA_DISTANCE times a factor uniform in this range (9.9–15.5 units)…
+pub const VARIED_DISTANCE_FACTOR: std::ops::RangeInclusive<f64> = 0.8..=1.25;
+/// …and its elevation uniform in this range, degrees (CLEVR's own renders stand near 30°).
+pub const VARIED_ELEVATION: std::ops::RangeInclusive<f64> = 25.0..=55.0;
 /// Focal length in units of the image width (horizontal field of view 49.13°).
 pub const FOCAL_PER_WIDTH: f64 = 1.09375;
 /// Object centres are uniform in [−CLEVR_EXTENT, CLEVR_EXTENT]².
@@ -445,12 +450,15 @@ fn clear_of_cars(eye: DVec3, objects: &[Object]) -> bool {
     })
 }
 
-/// Draws `views` camera placements for the scene.
+/// Draws `views` camera placements for the scene. With `varied` (CLEVR presets), each view's
+/// distance and elevation are drawn from that stream ([`VARIED_DISTANCE_FACTOR`],
+/// [`VARIED_ELEVATION`]); everything else, azimuths included, comes from `rng` as without it.
 pub fn sample_cameras(
     preset: Preset,
     scene: &Scene,
     rng: &mut StdRng,
     views: usize,
+    mut varied: Option<&mut StdRng>,
 ) -> Vec<CameraPlacement> {
     (0..views)
         .map(|v| {
@@ -513,11 +521,15 @@ pub fn sample_cameras(
                 _ => {
                     // uORF's rooms and CLEVR: a fixed distance and elevation, a uniform
                     // azimuth, looking at the centre.
-                    let (distance, elevation) = match preset {
-                        Preset::RoomChair | Preset::RoomDiverse => {
+                    let (distance, elevation) = match (preset, varied.as_deref_mut()) {
+                        (Preset::RoomChair | Preset::RoomDiverse, _) => {
                             (ROOM_CAMERA_DISTANCE, ROOM_CAMERA_ELEVATION)
                         }
-                        _ => (CLEVR_CAMERA_DISTANCE, CLEVR_CAMERA_ELEVATION),
+                        (_, Some(varied)) => (
+                            CLEVR_CAMERA_DISTANCE * varied.random_range(VARIED_DISTANCE_FACTOR),
+                            varied.random_range(VARIED_ELEVATION),
+                        ),
+                        (_, None) => (CLEVR_CAMERA_DISTANCE, CLEVR_CAMERA_ELEVATION),
                     };
                     let azimuth = rng.random_range(0.0..360.0);
                     let eye = distance * spherical(azimuth, elevation);
@@ -575,13 +587,49 @@ mod tests {
     fn clevr_cameras_are_on_the_contract_sphere() {
         let mut rng = StdRng::seed_from_u64(3);
         let scene = sample_scene(Preset::Clevr567, &mut rng);
-        let cams = sample_cameras(Preset::Clevr567, &scene, &mut rng, 4);
+        let cams = sample_cameras(Preset::Clevr567, &scene, &mut rng, 4, None);
         assert_eq!(cams.len(), 4);
         for c in cams {
             let p = DVec3::from_array(c.position);
             assert!((p.length() - 12.4).abs() < 1e-9);
             assert!((p.z / p.length() - 40f64.to_radians().sin()).abs() < 1e-12);
         }
+    }
+
+    #[test]
+    fn varied_cameras_move_only_distance_and_elevation_within_their_ranges() {
+        let mut rng = StdRng::seed_from_u64(3);
+        let scene = sample_scene(Preset::Clevr567, &mut rng);
+        let (mut plain_rng, mut varied_rng) = (rng.clone(), rng);
+        let plain = sample_cameras(Preset::Clevr567, &scene, &mut plain_rng, 64, None);
+        let mut stream = StdRng::seed_from_u64(11);
+        let varied = sample_cameras(
+            Preset::Clevr567,
+            &scene,
+            &mut varied_rng,
+            64,
+            Some(&mut stream),
+        );
+        let (mut distances, mut elevations) = (Vec::new(), Vec::new());
+        for (p, v) in plain.iter().zip(&varied) {
+            // The same azimuth, and the main stream left where it would be.
+            assert_eq!(p.azimuth_degrees, v.azimuth_degrees);
+            let eye = DVec3::from_array(v.position);
+            let (d, e) = (v.distance.unwrap(), v.elevation_degrees.unwrap());
+            assert!((eye.length() - d).abs() < 1e-9);
+            assert!((eye.z / d - e.to_radians().sin()).abs() < 1e-12);
+            assert!(VARIED_DISTANCE_FACTOR.contains(&(d / CLEVR_CAMERA_DISTANCE)));
+            assert!(VARIED_ELEVATION.contains(&e));
+            distances.push(d);
+            elevations.push(e);
+        }
+        assert_eq!(plain_rng.random::<u64>(), varied_rng.random::<u64>());
+        // Spread over the ranges, not one value.
+        let spread = |v: &[f64]| {
+            v.iter().cloned().fold(f64::MIN, f64::max) - v.iter().cloned().fold(f64::MAX, f64::min)
+        };
+        assert!(spread(&distances) > 0.5 * CLEVR_CAMERA_DISTANCE * 0.45);
+        assert!(spread(&elevations) > 15.0);
     }
 
     #[test]
@@ -636,7 +684,7 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(5);
         let scene = sample_scene(Preset::RoomDiverse, &mut rng);
         let tracer = crate::synth::render::Tracer::new(&scene, None).unwrap();
-        let cams = sample_cameras(Preset::RoomDiverse, &scene, &mut rng, 24);
+        let cams = sample_cameras(Preset::RoomDiverse, &scene, &mut rng, 24, None);
         for c in &cams {
             let p = DVec3::from_array(c.position);
             assert!((p.length() - ROOM_CAMERA_DISTANCE).abs() < 1e-9);
@@ -655,7 +703,7 @@ mod tests {
         let street = |seed| {
             let mut rng = StdRng::seed_from_u64(seed);
             let scene = sample_scene(Preset::CityBlock, &mut rng);
-            let cams = sample_cameras(Preset::CityBlock, &scene, &mut rng, 4);
+            let cams = sample_cameras(Preset::CityBlock, &scene, &mut rng, 4, None);
             (scene, cams)
         };
         let (first, _) = street(0);
@@ -691,7 +739,7 @@ mod tests {
                     assert!(!cars_overlap(a, b));
                 }
             }
-            let cams = sample_cameras(Preset::City, &scene, &mut rng, 4);
+            let cams = sample_cameras(Preset::City, &scene, &mut rng, 4, None);
             for c in cams {
                 assert!((0.4..=2.0).contains(&c.position[2]));
                 assert!(c.look_at[0] > c.position[0], "faces down the street");
@@ -707,7 +755,7 @@ mod tests {
             for seed in 0..300 {
                 let mut rng = StdRng::seed_from_u64(seed);
                 let scene = sample_scene(preset, &mut rng);
-                for c in sample_cameras(preset, &scene, &mut rng, 4) {
+                for c in sample_cameras(preset, &scene, &mut rng, 4, None) {
                     let eye = DVec3::from_array(c.position);
                     assert!(
                         clear_of_cars(eye, &scene.objects),
