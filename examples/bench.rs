@@ -574,9 +574,10 @@ fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize)
         "default encoding"
     };
     Ok(json!({
-        "what": format!("{what} ({} slots, {} tries, {} refinement steps, lr {} / frames {}; {path})",
+        "what": format!("{what} ({} slots, {} tries, {} refinement steps, lr {} / frames {}; {path}; {} thread{})",
                         opts.num_slots, opts.tries, opts.refine.steps, opts.refine.lr,
-                        opts.refine.frame_lr),
+                        opts.refine.frame_lr, rayon::current_num_threads(),
+                        if rayon::current_num_threads() == 1 { "" } else { "s" }),
         "preset": "default", "resolution": size, "runs": runs,
         "ms": s * 1e3, "cpu_s": cpu, "peak_mib": peak_rss_mib()
     }))
@@ -686,6 +687,8 @@ fn main() -> Result<()> {
                 specs.push(json!({"kind": "default-encode", "size": size, "reference": reference}));
             }
             specs.push(json!({"kind": "default-encode", "size": size, "half": true}));
+            // The same on one thread: what a second core gives, as a ratio from this run.
+            specs.push(json!({"kind": "default-encode", "size": size, "threads": 1}));
         }
     }
     if !only_train {
@@ -723,6 +726,11 @@ fn main() -> Result<()> {
         let mut command = std::process::Command::new(&exe);
         if let Some(spin) = spec["candle_spin"].as_str() {
             command.env("CANDLE_BARRIER_POOL_SPIN_LIMIT", spin);
+        }
+        if let Some(threads) = spec["threads"].as_u64() {
+            command
+                .env("RAYON_NUM_THREADS", threads.to_string())
+                .env("CANDLE_NUM_THREADS", threads.to_string());
         }
         let child = command.arg("--one").arg(spec.to_string()).output()?;
         if !child.status.success() {

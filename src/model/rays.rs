@@ -92,6 +92,38 @@ pub fn encode_line(
     freqs: usize,
 ) {
     let p = plucker_in_frame(world_to_frame, o, d, scene_scale);
+    write_line(out, &p, freqs);
+}
+
+/// [`encode_line`] for a line that only matters within a reach of the frame origin (`bound` as
+/// [`within_reach`] reads it; None: no bound). A line beyond it gets its 6 Plücker coordinates
+/// (what every decoder decides the reach from) and zeros for its Fourier features, which no
+/// decoder reads there: the kernel and the fast renderer skip such a line, the candle reference
+/// masks what the field makes of it. Returns whether the line is within the reach.
+pub fn encode_line_within(
+    out: &mut [f32],
+    world_to_frame: &DMat4,
+    o: DVec3,
+    d: DVec3,
+    scene_scale: f64,
+    freqs: usize,
+    bound: Option<f32>,
+) -> bool {
+    let p = plucker_in_frame(world_to_frame, o, d, scene_scale);
+    for (c, v) in p.iter().enumerate() {
+        out[c] = *v as f32;
+    }
+    let within = within_reach(out, bound);
+    if within {
+        write_line(out, &p, freqs);
+    } else {
+        out[6..6 + 12 * freqs].fill(0.0);
+    }
+    within
+}
+
+/// The encoding of the Plücker coordinates `p` (see [`encode_line`]).
+fn write_line(out: &mut [f32], p: &[f64; 6], freqs: usize) {
     for (c, v) in p.iter().enumerate() {
         out[c] = *v as f32;
         if freqs == 0 {
@@ -254,7 +286,13 @@ impl HostRays {
                 .zip(scene.dirs.iter().copied())
                 .collect();
             let scene_coords = &mut coords[bi * per_scene..(bi + 1) * per_scene];
-            encode_fields(cfg, scene_coords, &frames, &camera_lines);
+            encode_fields(
+                cfg,
+                scene_coords,
+                &frames,
+                &camera_lines,
+                cfg.slot_reach_bound(),
+            );
             // 4. With shadows, the rays' shadow lines the same way.
             if let Some((shadow_coords, on_ground)) = shadow.as_mut() {
                 let to_light = light_direction(cfg.shadow_light.expect("shadow buffers"));
@@ -271,7 +309,7 @@ impl HostRays {
                     })
                     .collect();
                 let scene_lines = &mut shadow_coords[bi * per_scene..(bi + 1) * per_scene];
-                encode_fields(cfg, scene_lines, &frames, &lines);
+                encode_fields(cfg, scene_lines, &frames, &lines, cfg.shadow_reach_bound());
             }
             // 5. The ordering shifts that make slots in different frames comparable.
             for (ri, &(o, d)) in camera_lines.iter().enumerate() {
@@ -476,12 +514,14 @@ fn batch_shape(scenes: &[SceneRays]) -> Result<(usize, usize, usize)> {
 }
 
 /// Encodes `lines` in each field's frame (`frames`: world-to-field and origin) into `dest`,
-/// field-major [S, R, in_dim]; fields in parallel.
+/// field-major [S, R, in_dim]; fields in parallel. A foreground field's line beyond `reach`
+/// (the bound of [`encode_line_within`]) gets no Fourier features: no decoder reads them.
 fn encode_fields(
     cfg: &Config,
     dest: &mut [f32],
     frames: &[(DMat4, DVec3)],
     lines: &[(DVec3, DVec3)],
+    reach: Option<f32>,
 ) {
     let in_dim = cfg.ray_input_dim();
     dest.par_chunks_mut(lines.len() * in_dim)
@@ -489,8 +529,9 @@ fn encode_fields(
         .enumerate()
         .for_each(|(f, (field, (inv, _)))| {
             let scale = cfg.line_scale(f);
+            let bound = if f > 0 { reach } else { None };
             for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
-                encode_line(out, inv, *o, *d, scale, cfg.ray_fourier_freqs);
+                encode_line_within(out, inv, *o, *d, scale, cfg.ray_fourier_freqs, bound);
             }
         });
 }
@@ -810,6 +851,71 @@ mod tests {
         let far = plucker_in_frame(&id, DVec3::new(1e4, -3e4, 2e4), d, 8.0);
         let m = DVec3::new(far[3], far[4], far[5]).length();
         assert!(far.iter().all(|v| v.is_finite()) && m < 1.0);
+    }
+
+    /// With reaches, a foreground field's ray or shadow line beyond its reach keeps its Plücker
+    /// coordinates (the reach is decided from them) and gets zero Fourier features; within it,
+    /// and for the background, the encoding is [`encode_line`]'s.
+    #[test]
+    fn lines_beyond_a_reach_get_no_fourier_features() {
+        let cfg = Config {
+            ray_fourier_freqs: 3,
+            slot_reach: 3.0,
+            shadow_reach: 3.0,
+            shadow_light: Some([30.0, 55.0]),
+            ..Config::small()
+        };
+        let frames = [DMat4::from_translation(DVec3::new(1.0, -0.5, 0.5))];
+        // A ray through the slot's frame origin, and one passing far from it.
+        let eye = DVec3::new(9.0, -7.0, 6.0);
+        let origins = [eye, eye];
+        let dirs = [
+            (DVec3::new(1.0, -0.5, 0.5) - eye).normalize(),
+            (DVec3::new(-30.0, 40.0, 0.0) - eye).normalize(),
+        ];
+        let rays = HostRays::new(
+            &cfg,
+            &[SceneRays {
+                slot_to_world: &frames,
+                origins: &origins,
+                dirs: &dirs,
+            }],
+        )
+        .unwrap();
+        let in_dim = cfg.ray_input_dim();
+        let inv = frames[0].inverse();
+        let (lines, _) = rays.shadow_lines.as_ref().unwrap();
+        let to_light = light_direction([30.0, 55.0]);
+        let mut reached = [0usize; 2];
+        for (encoded, bound, line_of) in [
+            (&rays.coords, cfg.slot_reach_bound(), None),
+            (lines, cfg.shadow_reach_bound(), Some(to_light)),
+        ] {
+            for ri in 0..2 {
+                let (o, d) = match line_of {
+                    None => (origins[ri], dirs[ri]),
+                    Some(l) => {
+                        shadow_line(origins[ri], dirs[ri], l).unwrap_or((origins[ri], dirs[ri]))
+                    }
+                };
+                let mut full = vec![0f32; in_dim];
+                encode_line(&mut full, &inv, o, d, cfg.line_scale(1), 3);
+                let slot = &encoded[(2 + ri) * in_dim..(3 + ri) * in_dim];
+                assert_eq!(slot[..6], full[..6]);
+                if within_reach(&full, bound) {
+                    assert_eq!(slot, &full[..]);
+                    reached[ri] += 1;
+                } else {
+                    assert!(slot[6..].iter().all(|&v| v == 0.0));
+                }
+                // The background has no reach.
+                let mut bg = vec![0f32; in_dim];
+                encode_line(&mut bg, &DMat4::IDENTITY, o, d, cfg.line_scale(0), 3);
+                assert_eq!(&encoded[ri * in_dim..(ri + 1) * in_dim], &bg[..]);
+            }
+        }
+        // The near ray is within both reaches, the far one within neither.
+        assert_eq!(reached, [2, 0]);
     }
 
     #[test]

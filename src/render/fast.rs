@@ -30,7 +30,7 @@
 
 use crate::model::heads::shadow_host;
 use crate::model::rays::{
-    encode_line, light_direction, plucker_in_frame, shadow_line, within_reach,
+    encode_line, encode_line_within, light_direction, plucker_in_frame, shadow_line, within_reach,
 };
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
@@ -831,9 +831,8 @@ impl FastRenderer {
                 if let Some((o, d)) = shadow_line(origins[ri], dirs[ri], to_light) {
                     let j = sc.lit_rows.len();
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-                    encode_line(out, inv, o, d, line_scale, lf.freqs);
                     // A line beyond the slot's reach casts nothing: not evaluated.
-                    if within_reach(out, sh.reach) {
+                    if encode_line_within(out, inv, o, d, line_scale, lf.freqs, sh.reach) {
                         sc.lit_rows.push(ri);
                     }
                 }
