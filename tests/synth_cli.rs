@@ -552,7 +552,10 @@ fn uorf_layout_reads_as_uorf_reads_it() {
     // colf's ids for the written cameras, from colf's tracer.
     std::fs::create_dir(&gt).unwrap();
     let sampled: Vec<_> = (0..scenes)
-        .map(|i| colf::synth::sample(Preset::Clevr567, seed, Split::Train, i, size, views).unwrap())
+        .map(|i| {
+            colf::synth::sample(Preset::Clevr567, seed, Split::Train, i, size, views, false)
+                .unwrap()
+        })
         .collect();
     let mut truth = Vec::new();
     for (i, s) in sampled.iter().enumerate() {
@@ -704,21 +707,27 @@ fn committed_examples_are_reproduced() {
     }
 }
 
+/// Three scenes generated into DIR/plain, and with `flag` into DIR/a and again DIR/b, which
+/// must hold the same bytes (the option is seeded); returns (plain, a).
+fn plain_and_with(dir: &Path, flag: &str) -> (PathBuf, PathBuf) {
+    let (plain, a, b) = (dir.join("plain"), dir.join("a"), dir.join("b"));
+    let args = ["--scenes", "3", "--size", "32", "--seed", "4"];
+    generate(&plain, &args);
+    generate(&a, &[&args[..], &[flag]].concat());
+    generate(&b, &[&args[..], &[flag]].concat());
+    assert!(
+        files(&a) == files(&b),
+        "{flag}: same options gave different files"
+    );
+    (plain, a)
+}
+
 /// `--randomize-look`: seeded (same bytes twice), the same objects, cameras and masks as
 /// without it, other colours, and scene.json records the look and the light it drew.
 #[test]
 fn randomized_look_keeps_layouts_cameras_and_masks() {
     let tmp = tempfile::tempdir().unwrap();
-    let (plain, a, b) = (
-        tmp.path().join("plain"),
-        tmp.path().join("a"),
-        tmp.path().join("b"),
-    );
-    let args = ["--scenes", "3", "--size", "32", "--seed", "4"];
-    generate(&plain, &args);
-    generate(&a, &[&args[..], &["--randomize-look"]].concat());
-    generate(&b, &[&args[..], &["--randomize-look"]].concat());
-    assert!(files(&a) == files(&b), "same options gave different files");
+    let (plain, a) = plain_and_with(tmp.path(), "--randomize-look");
     let mut floors = Vec::new();
     for s in 0..3 {
         let (dp, da) = (
@@ -757,16 +766,7 @@ fn randomized_look_keeps_layouts_cameras_and_masks() {
 #[test]
 fn randomized_cameras_keep_objects_and_vary_distance_and_elevation() {
     let tmp = tempfile::tempdir().unwrap();
-    let (plain, a, b) = (
-        tmp.path().join("plain"),
-        tmp.path().join("a"),
-        tmp.path().join("b"),
-    );
-    let args = ["--scenes", "3", "--size", "32", "--seed", "4"];
-    generate(&plain, &args);
-    generate(&a, &[&args[..], &["--randomize-camera"]].concat());
-    generate(&b, &[&args[..], &["--randomize-camera"]].concat());
-    assert!(files(&a) == files(&b), "same options gave different files");
+    let (plain, a) = plain_and_with(tmp.path(), "--randomize-camera");
     let dataset: serde_json::Value =
         serde_json::from_slice(&std::fs::read(a.join("dataset.json")).unwrap()).unwrap();
     assert_eq!(dataset["randomize_camera"], true);

@@ -83,28 +83,16 @@ pub fn plucker_in_frame(world_to_frame: &DMat4, o: DVec3, d: DVec3, scene_scale:
 /// Writes the encoding of the line (o, d) in the frame `world_to_frame` to `out`
 /// (`Config::ray_input_dim` values): the 6 bounded Plücker coordinates, then sin/cos of each at
 /// `freqs` octaves. The one encoding of rays and shadow lines, here and in `render/fast.rs`.
+///
+/// `bound` (as [`within_reach`] reads it; None: none): a line that only matters within a reach
+/// of the frame origin and passes beyond it gets its Plücker coordinates (what every decoder
+/// decides the reach from) and zeros for the Fourier features no decoder reads there (the kernel
+/// and the fast renderer skip such a line, the candle reference masks what the field makes of
+/// it). Returns whether the line is within the bound.
 pub fn encode_line(
     out: &mut [f32],
     world_to_frame: &DMat4,
-    o: DVec3,
-    d: DVec3,
-    scene_scale: f64,
-    freqs: usize,
-) {
-    let p = plucker_in_frame(world_to_frame, o, d, scene_scale);
-    write_line(out, &p, freqs);
-}
-
-/// [`encode_line`] for a line that only matters within a reach of the frame origin (`bound` as
-/// [`within_reach`] reads it; None: no bound). A line beyond it gets its 6 Plücker coordinates
-/// (what every decoder decides the reach from) and zeros for its Fourier features, which no
-/// decoder reads there: the kernel and the fast renderer skip such a line, the candle reference
-/// masks what the field makes of it. Returns whether the line is within the reach.
-pub fn encode_line_within(
-    out: &mut [f32],
-    world_to_frame: &DMat4,
-    o: DVec3,
-    d: DVec3,
+    (o, d): (DVec3, DVec3),
     scene_scale: f64,
     freqs: usize,
     bound: Option<f32>,
@@ -515,7 +503,7 @@ fn batch_shape(scenes: &[SceneRays]) -> Result<(usize, usize, usize)> {
 
 /// Encodes `lines` in each field's frame (`frames`: world-to-field and origin) into `dest`,
 /// field-major [S, R, in_dim]; fields in parallel. A foreground field's line beyond `reach`
-/// (the bound of [`encode_line_within`]) gets no Fourier features: no decoder reads them.
+/// (the bound of [`encode_line`]) gets no Fourier features: no decoder reads them.
 fn encode_fields(
     cfg: &Config,
     dest: &mut [f32],
@@ -531,7 +519,7 @@ fn encode_fields(
             let scale = cfg.line_scale(f);
             let bound = if f > 0 { reach } else { None };
             for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
-                encode_line_within(out, inv, *o, *d, scale, cfg.ray_fourier_freqs, bound);
+                encode_line(out, inv, (*o, *d), scale, cfg.ray_fourier_freqs, bound);
             }
         });
 }
@@ -614,6 +602,19 @@ fn background_anchor(
 mod tests {
     use super::*;
 
+    /// The host encoding of one scene's rays (test shorthand).
+    fn host_rays(cfg: &Config, frames: &[DMat4], origins: &[DVec3], dirs: &[DVec3]) -> HostRays {
+        HostRays::new(
+            cfg,
+            &[SceneRays {
+                slot_to_world: frames,
+                origins,
+                dirs,
+            }],
+        )
+        .unwrap()
+    }
+
     /// The analytic frame derivatives agree with forward differences of the encoding, one
     /// frame moved at a time: its own field's values move by its derivatives, the background's
     /// ordering shift by its own where it follows that frame, nothing else.
@@ -649,15 +650,7 @@ mod tests {
                 slot_scale,
                 ..Config::small()
             };
-            let rays = HostRays::new(
-                &cfg,
-                &[SceneRays {
-                    slot_to_world: &frames,
-                    origins: &origins,
-                    dirs: &dirs,
-                }],
-            )
-            .unwrap();
+            let rays = host_rays(&cfg, &frames, &origins, &dirs);
             let field = rays.coords.len() / 2;
             (rays.coords[..field].to_vec(), rays.coords[field..].to_vec())
         };
@@ -670,7 +663,7 @@ mod tests {
         // The slot's encoding is the line's at that scale.
         let mut expected = vec![0f32; per_ray];
         let inv = frames[0].inverse();
-        encode_line(&mut expected, &inv, origins[0], dirs[0], 1.5, 2);
+        encode_line(&mut expected, &inv, (origins[0], dirs[0]), 1.5, 2, None);
         assert_eq!(&fg_scaled[..expected.len()], &expected[..]);
     }
 
@@ -686,17 +679,7 @@ mod tests {
         let origins = [DVec3::new(8.0, -9.0, 7.0), DVec3::new(-10.0, 2.5, 6.0)];
         let dirs = [DVec3::new(-0.6, 0.8, -0.5), DVec3::new(1.0, -0.1, -0.6)];
         let (s, r) = (3, 2);
-        let scene_at = |f: &'_ [DMat4]| -> HostRays {
-            HostRays::new(
-                cfg,
-                &[SceneRays {
-                    slot_to_world: f,
-                    origins: &origins,
-                    dirs: &dirs,
-                }],
-            )
-            .unwrap()
-        };
+        let scene_at = |f: &'_ [DMat4]| -> HostRays { host_rays(cfg, f, &origins, &dirs) };
         let at = scene_at(&frames);
         let absolute = |h: &HostRays| -> Vec<f64> {
             h.shift
@@ -873,15 +856,7 @@ mod tests {
             (DVec3::new(1.0, -0.5, 0.5) - eye).normalize(),
             (DVec3::new(-30.0, 40.0, 0.0) - eye).normalize(),
         ];
-        let rays = HostRays::new(
-            &cfg,
-            &[SceneRays {
-                slot_to_world: &frames,
-                origins: &origins,
-                dirs: &dirs,
-            }],
-        )
-        .unwrap();
+        let rays = host_rays(&cfg, &frames, &origins, &dirs);
         let in_dim = cfg.ray_input_dim();
         let inv = frames[0].inverse();
         let (lines, _) = rays.shadow_lines.as_ref().unwrap();
@@ -899,7 +874,7 @@ mod tests {
                     }
                 };
                 let mut full = vec![0f32; in_dim];
-                encode_line(&mut full, &inv, o, d, cfg.line_scale(1), 3);
+                encode_line(&mut full, &inv, (o, d), cfg.line_scale(1), 3, None);
                 let slot = &encoded[(2 + ri) * in_dim..(3 + ri) * in_dim];
                 assert_eq!(slot[..6], full[..6]);
                 if within_reach(&full, bound) {
@@ -910,7 +885,14 @@ mod tests {
                 }
                 // The background has no reach.
                 let mut bg = vec![0f32; in_dim];
-                encode_line(&mut bg, &DMat4::IDENTITY, o, d, cfg.line_scale(0), 3);
+                encode_line(
+                    &mut bg,
+                    &DMat4::IDENTITY,
+                    (o, d),
+                    cfg.line_scale(0),
+                    3,
+                    None,
+                );
                 assert_eq!(&encoded[ri * in_dim..(ri + 1) * in_dim], &bg[..]);
             }
         }
@@ -1003,10 +985,10 @@ mod tests {
         encode_line(
             &mut expected,
             &frames[0].inverse(),
-            DVec3::new(2.5, 2.0, 0.0),
-            -to_light,
+            (DVec3::new(2.5, 2.0, 0.0), -to_light),
             cfg.scene_scale,
             cfg.ray_fourier_freqs,
+            None,
         );
         let got = &lines[2 * in_dim..3 * in_dim];
         assert!(got.iter().zip(&expected).all(|(a, b)| (a - b).abs() < 1e-6));

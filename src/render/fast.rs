@@ -30,7 +30,7 @@
 
 use crate::model::heads::shadow_host;
 use crate::model::rays::{
-    encode_line, encode_line_within, light_direction, plucker_in_frame, shadow_line, within_reach,
+    encode_line, light_direction, plucker_in_frame, shadow_line, within_reach,
 };
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
@@ -832,7 +832,7 @@ impl FastRenderer {
                     let j = sc.lit_rows.len();
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
                     // A line beyond the slot's reach casts nothing: not evaluated.
-                    if encode_line_within(out, inv, o, d, line_scale, lf.freqs, sh.reach) {
+                    if encode_line(out, inv, (o, d), line_scale, lf.freqs, sh.reach) {
                         sc.lit_rows.push(ri);
                     }
                 }
@@ -853,7 +853,14 @@ impl FastRenderer {
         // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
         for (j, &ri) in sc.rows.iter().enumerate() {
             let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-            encode_line(out, inv, origins[ri], dirs[ri], line_scale, lf.freqs);
+            encode_line(
+                out,
+                inv,
+                (origins[ri], dirs[ri]),
+                line_scale,
+                lf.freqs,
+                None,
+            );
         }
         let x_w = lf.run_field(si, m, sc);
         // Shadow density from the ray's own features (no `shadow_light`).

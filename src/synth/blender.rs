@@ -503,10 +503,19 @@ mod tests {
 
     #[test]
     fn lights_are_seeded_by_the_scene() {
-        let a = super::super::sample(Preset::Clevr567, 0, super::super::Split::Train, 0, 16, 1)
-            .unwrap();
-        let b = super::super::sample(Preset::Clevr567, 0, super::super::Split::Train, 1, 16, 1)
-            .unwrap();
+        let scene = |index| {
+            super::super::sample(
+                Preset::Clevr567,
+                0,
+                super::super::Split::Train,
+                index,
+                16,
+                1,
+                false,
+            )
+            .unwrap()
+        };
+        let (a, b) = (scene(0), scene(1));
         assert_eq!(lights(&a), lights(&a));
         assert_ne!(lights(&a), lights(&b));
         let key = &lights(&a)["key"]["position"];

@@ -106,7 +106,7 @@ pub struct SynthOptions {
 impl SynthOptions {
     /// Scene `index` of these options: objects, light and cameras (not yet rendered).
     pub fn sample(&self, index: u64) -> Result<SampledScene> {
-        sample_scene(
+        sample(
             self.preset,
             self.seed,
             self.split,
@@ -204,23 +204,11 @@ pub struct SampledScene {
 
 /// Samples scene `index`: objects, light, then cameras, redrawn up to CAMERA_DRAWS times until
 /// every object covers a mask pixel in some view (the draw with the most visible objects wins
-/// otherwise). Each object's `visible_pixels` is filled in.
+/// otherwise). Each object's `visible_pixels` is filled in. With `randomize_camera`, each CLEVR
+/// view's camera distance and elevation come from a stream of their own (derived from the scene
+/// seed, so the objects and the light are those of the same scene without it, and the azimuths
+/// too unless the cameras had to be redrawn).
 pub fn sample(
-    preset: Preset,
-    seed: u64,
-    split: Split,
-    index: u64,
-    size: u32,
-    views: usize,
-) -> Result<SampledScene> {
-    sample_scene(preset, seed, split, index, size, views, false)
-}
-
-/// [`sample`], with each CLEVR view's camera distance and elevation drawn from a stream of
-/// their own when `randomize_camera` (derived from the scene seed, so the objects and the light
-/// are those of the same scene without it, and the azimuths too unless the cameras had to be
-/// redrawn).
-pub fn sample_scene(
     preset: Preset,
     seed: u64,
     split: Split,
@@ -653,7 +641,7 @@ mod tests {
     #[test]
     fn every_object_is_seen_and_counts_match_the_masks() {
         for index in 0..6 {
-            let s = sample(Preset::Clevr567, 1, Split::Train, index, 32, 4).unwrap();
+            let s = sample(Preset::Clevr567, 1, Split::Train, index, 32, 4, false).unwrap();
             assert_eq!(s.frames.len(), 4);
             let tracer = Tracer::new(&s.scene, None).unwrap();
             for (v, frame) in s.frames.iter().enumerate() {
