@@ -501,9 +501,9 @@ model-paper: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with one thread, its
 # output appended to its log. Run it at the start of every session. RESUME_RUNS lists them, one
-# a core: the paper-sized decoder, and the city (the room runs take that core after it;
-# docs/training-log.md says how the cores are split).
-RESUME_RUNS ?= model-paper:$(PAPER_RUN)/make.log model-city:$(CITY_RUN)/make.log
+# a core: the paper-sized decoder and the room-chair run (the city waits for a change of its
+# recipe; docs/training-log.md says how the cores are split).
+RESUME_RUNS ?= model-paper:$(PAPER_RUN)/make.log model-room-chair:$(ROOM_RUN)/room-chair.log
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
