@@ -103,20 +103,19 @@ pub fn encode_line(
     }
     let within = within_reach(out, bound);
     if within {
-        write_line(out, &p, freqs);
+        write_fourier_features(out, &p, freqs);
     } else {
         out[6..6 + 12 * freqs].fill(0.0);
     }
     within
 }
 
-/// The encoding of the Plücker coordinates `p` (see [`encode_line`]).
-fn write_line(out: &mut [f32], p: &[f64; 6], freqs: usize) {
+/// The Fourier features of the Plücker coordinates `p` (see [`encode_line`]).
+fn write_fourier_features(out: &mut [f32], p: &[f64; 6], freqs: usize) {
+    if freqs == 0 {
+        return;
+    }
     for (c, v) in p.iter().enumerate() {
-        out[c] = *v as f32;
-        if freqs == 0 {
-            continue;
-        }
         // sin/cos(2^f·π·v) by the double-angle formulas from f = 0: one sin/cos per coordinate
         // instead of one per frequency (sin/cos were 4 % of a training step); f64 keeps the
         // error of ≤ 16 doublings far below f32 resolution.
