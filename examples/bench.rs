@@ -573,11 +573,12 @@ fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize)
     } else {
         "default encoding"
     };
+    let threads = rayon::current_num_threads();
+    let plural = if threads == 1 { "" } else { "s" };
     Ok(json!({
-        "what": format!("{what} ({} slots, {} tries, {} refinement steps, lr {} / frames {}; {path}; {} thread{})",
+        "what": format!("{what} ({} slots, {} tries, {} refinement steps, lr {} / frames {}; {path}; {threads} thread{plural})",
                         opts.num_slots, opts.tries, opts.refine.steps, opts.refine.lr,
-                        opts.refine.frame_lr, rayon::current_num_threads(),
-                        if rayon::current_num_threads() == 1 { "" } else { "s" }),
+                        opts.refine.frame_lr),
         "preset": "default", "resolution": size, "runs": runs,
         "ms": s * 1e3, "cpu_s": cpu, "peak_mib": peak_rss_mib()
     }))

@@ -11,7 +11,7 @@ cd "$(dirname "$0")/.."
 for spec in "$@"; do
   target=${spec%%:*}; log=${spec#*:}
   [ -n "$target" ] && [ "$log" != "$spec" ] || { echo "resume_runs.sh: '$spec' is not TARGET:LOG" >&2; exit 2; }
-  if pgrep -f "make $target\$" >/dev/null || pgrep -f "make $target " >/dev/null; then
+  if pgrep -f "make $target( |\$)" >/dev/null; then
     echo "$target: running"
   else
     mkdir -p "$(dirname "$log")"

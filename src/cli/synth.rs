@@ -140,12 +140,7 @@ impl SynthArgs {
         if self.engine == EngineName::Blender && self.randomize_look {
             return Err("--randomize-look works with --engine analytic only".to_string());
         }
-        if self.randomize_camera
-            && !matches!(
-                self.preset,
-                Preset::Clevr567 | Preset::Packed11 | Preset::Clevr567Textured
-            )
-        {
+        if self.randomize_camera && !self.preset.varies_cameras() {
             return Err(format!(
                 "--randomize-camera varies the cameras of clevr567, packed11 and \
                  clevr567-textured, not {}",

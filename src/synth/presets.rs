@@ -62,6 +62,16 @@ impl Preset {
         }
     }
 
+    /// Whether the preset's cameras can be varied (`SynthOptions::randomize_camera`): the CLEVR
+    /// presets, whose cameras orbit the origin in open space. The rooms' stand inside walls and
+    /// the streets' are placed by their rows.
+    pub fn varies_cameras(self) -> bool {
+        matches!(
+            self,
+            Preset::Clevr567 | Preset::Packed11 | Preset::Clevr567Textured
+        )
+    }
+
     /// The number of scenes of `split` in the paper's dataset (uORF's CLEVR-567, Room-Chair
     /// and Room-Diverse; packed-CLEVR-11 and clevr567-textured as CLEVR-567; City-Block's 500
     /// training scenes); none for `city` and City-Block's test split (the paper shows one).
@@ -450,7 +460,8 @@ fn clear_of_cars(eye: DVec3, objects: &[Object]) -> bool {
     })
 }
 
-/// Draws `views` camera placements for the scene. With `varied` (CLEVR presets), each view's
+/// Draws `views` camera placements for the scene. With `varied` (presets that
+/// [`Preset::varies_cameras`]), each view's
 /// distance and elevation are drawn from that stream ([`VARIED_DISTANCE_FACTOR`],
 /// [`VARIED_ELEVATION`]); everything else, azimuths included, comes from `rng` as without it.
 pub fn sample_cameras(
@@ -521,15 +532,17 @@ pub fn sample_cameras(
                 _ => {
                     // uORF's rooms and CLEVR: a fixed distance and elevation, a uniform
                     // azimuth, looking at the centre.
-                    let (distance, elevation) = match (preset, varied.as_deref_mut()) {
-                        (Preset::RoomChair | Preset::RoomDiverse, _) => {
+                    let (distance, elevation) = match preset {
+                        Preset::RoomChair | Preset::RoomDiverse => {
                             (ROOM_CAMERA_DISTANCE, ROOM_CAMERA_ELEVATION)
                         }
-                        (_, Some(varied)) => (
-                            CLEVR_CAMERA_DISTANCE * varied.random_range(VARIED_DISTANCE_FACTOR),
-                            varied.random_range(VARIED_ELEVATION),
-                        ),
-                        (_, None) => (CLEVR_CAMERA_DISTANCE, CLEVR_CAMERA_ELEVATION),
+                        _ => match varied.as_deref_mut().filter(|_| preset.varies_cameras()) {
+                            Some(varied) => (
+                                CLEVR_CAMERA_DISTANCE * varied.random_range(VARIED_DISTANCE_FACTOR),
+                                varied.random_range(VARIED_ELEVATION),
+                            ),
+                            None => (CLEVR_CAMERA_DISTANCE, CLEVR_CAMERA_ELEVATION),
+                        },
                     };
                     let azimuth = rng.random_range(0.0..360.0);
                     let eye = distance * spherical(azimuth, elevation);
