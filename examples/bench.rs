@@ -329,11 +329,13 @@ fn measure_train(which: &str, reference: bool, reach: Reach, steps: u64) -> Resu
     let mut trainer = Trainer::new(opts, false)?;
     let _ = trainer.train_step()?; // warm-up
     let (c, t) = (cpu_seconds(), Instant::now());
-    let times: Vec<f64> = (0..steps)
-        .map(|_| trainer.train_step().map(|l| l.seconds))
+    let logs: Vec<_> = (0..steps)
+        .map(|_| trainer.train_step())
         .collect::<Result<_>>()?;
     let (wall, cpu) = (t.elapsed().as_secs_f64(), cpu_seconds() - c);
-    let s = median(times);
+    let s = median(logs.iter().map(|l| l.seconds).collect());
+    // The same steps without their time in the decode kernel: what a free decoder would leave.
+    let rest = median(logs.iter().map(|l| l.seconds - l.decoder_s).collect());
     let path = if reference { "autograd" } else { "fused" };
     let spin = std::env::var("CANDLE_BARRIER_POOL_SPIN_LIMIT").unwrap_or_default();
     let threads = if spin == "25000" {
@@ -345,7 +347,8 @@ fn measure_train(which: &str, reference: bool, reach: Reach, steps: u64) -> Resu
         "what": format!("training step ({path}{threads}{}; 4 scenes x 4 views x 256 rays, K=7, proposals)", reach.label()),
         "preset": which, "slots": 7, "runs": steps,
         "ms": s * 1e3, "steps_per_hour": 3600.0 / s, "cores_busy": cpu / wall,
-        "rays_per_s": 4096.0 / s, "peak_mib": peak_rss_mib()
+        "rays_per_s": 4096.0 / s, "peak_mib": peak_rss_mib(),
+        "rest_ms": (!reference).then_some(rest * 1e3)
     }))
 }
 
@@ -860,6 +863,29 @@ fn main() -> Result<()> {
             ) {
                 println!(
                     "training step ({preset}): fused with a {with} {x:.2}x faster than autograd"
+                );
+            }
+        }
+        // Amdahl's bound: the part of each fused step outside the decode kernel, timed inside
+        // the same steps, caps what any faster decoder could give against the autograd path.
+        let autograd_ms =
+            find("training step", preset, "autograd", "").and_then(|r| r["ms"].as_f64());
+        for r in results.iter().filter(|r| {
+            let what = r["what"].as_str().unwrap_or("");
+            what.starts_with("training step (fused") && r["preset"] == preset
+        }) {
+            if let (Some(rest), Some(ms), Some(autograd)) =
+                (r["rest_ms"].as_f64(), r["ms"].as_f64(), autograd_ms)
+            {
+                let what = r["what"].as_str().unwrap_or("");
+                let label = what
+                    .split(';')
+                    .next()
+                    .unwrap_or("")
+                    .trim_start_matches("training step (");
+                println!(
+                    "training step ({preset}, {label}): {rest:.1} of {ms:.1} ms outside the decode kernel; with a free decoder at most {:.2}x faster than autograd",
+                    autograd / rest
                 );
             }
         }

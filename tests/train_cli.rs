@@ -85,6 +85,19 @@ fn loss_falls_on_a_tiny_fixed_set() {
     let mean = |s: &[(u64, f64)]| s.iter().map(|x| x.1).sum::<f64>() / s.len() as f64;
     let (first, last) = (mean(&losses[..5]), mean(&losses[35..]));
     assert!(last < 0.5 * first, "loss did not fall: {first} -> {last}");
+    // Each step logs the part of its time spent in the decode kernel: some, never more than
+    // the whole step.
+    let text = std::fs::read_to_string(format!("{}.log.jsonl", out.display())).unwrap();
+    for line in text.lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        if v.get("eval").is_none() {
+            let (kernel, step) = (
+                v["decoder_s"].as_f64().unwrap(),
+                v["seconds"].as_f64().unwrap(),
+            );
+            assert!(kernel > 0.0 && kernel <= step, "{line}");
+        }
+    }
     // The model file is a real model: it loads and encodes.
     colf::model::Colf::load(&out).unwrap();
 }

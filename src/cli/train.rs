@@ -26,7 +26,9 @@ file you name, is written like a shell redirect (a symbolic link keeps pointing 
 names, which is replaced); the files colf-train names beside it (OUT.ckpt, OUT.log.jsonl, the \
 --keep-every snapshots) replace a link found at their path and never follow it. Every \
 step appends a JSON line to OUT.log.jsonl: step, loss, mse, psnr, obj_psnr (rays on objects), \
-fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s; \
+fg_share (foreground weight on object rays), fg_ari, slots_used, lr, grad_norm, rays_per_s, \
+and the step's seconds split as forward_s, backward_s, update_s, with decoder_s the decode \
+kernel's share of them; \
 evaluations on --eval-data add lines with an \"eval\" object. A step with a non-finite loss or \
 gradient is skipped and counted; more than --max-bad-steps abort the run.",
     after_help = "Examples:\n  colf-train init --preset small --seed 0 -o init.safetensors\n  \

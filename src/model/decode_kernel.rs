@@ -36,7 +36,35 @@ use super::net::{Decoded, LightFieldDecoder};
 use super::rays::{within_reach, RayBatch};
 use candle_core::{CpuStorage, CustomOp3, Layout, Result, Shape, Storage, Tensor};
 use rayon::prelude::*;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+/// Wall time the kernel has run in this process, forward and backward, in nanoseconds.
+static KERNEL_NANOS: AtomicU64 = AtomicU64::new(0);
+
+/// Seconds the decode kernel has run in this process so far (forward and backward passes,
+/// wall time). The trainer logs each step's difference, so a step's decoder share is measured
+/// inside the step rather than estimated from a separate benchmark.
+pub fn kernel_seconds() -> f64 {
+    KERNEL_NANOS.load(Ordering::Relaxed) as f64 * 1e-9
+}
+
+/// Adds the time from its creation to its drop to [`KERNEL_NANOS`].
+struct KernelTimer(Instant);
+
+impl KernelTimer {
+    fn start() -> Self {
+        Self(Instant::now())
+    }
+}
+
+impl Drop for KernelTimer {
+    fn drop(&mut self) {
+        let nanos = u64::try_from(self.0.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        KERNEL_NANOS.fetch_add(nanos, Ordering::Relaxed);
+    }
+}
 
 /// Rays per chunk of a field pass: a chunk's activations (128 × 256 floats per layer at the
 /// paper's width) stay in the core's L2 cache between a layer's forward and the next.
@@ -1154,6 +1182,7 @@ impl CustomOp3 for DecodeOp {
         rs: &CpuStorage,
         rl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
+        let _timer = KernelTimer::start();
         let sh = &self.shape;
         let fields = storage_f32(fs, fl, "field parameters")?;
         let shared = storage_f32(ss, sl, "shared parameters")?;
@@ -1195,6 +1224,7 @@ impl CustomOp3 for DecodeOp {
         _res: &Tensor,
         grad_res: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let _timer = KernelTimer::start();
         let sh = &self.shape;
         let grad_res = grad_res.contiguous()?;
         let (g_guard, g_layout) = grad_res.storage_and_layout();

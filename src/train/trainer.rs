@@ -238,6 +238,9 @@ pub struct StepLog {
     pub forward_s: f64,
     pub backward_s: f64,
     pub update_s: f64,
+    /// Of the forward and backward passes, the time in the decode kernel (0 with
+    /// `--reference-decoder`): what is left of a step when the decoder is taken out.
+    pub decoder_s: f64,
     pub skipped: bool,
 }
 
@@ -456,6 +459,7 @@ impl Trainer {
     /// One optimisation step (a non-finite loss skips the update and is counted).
     pub fn train_step(&mut self) -> Result<StepLog> {
         let started = Instant::now();
+        let kernel_before = crate::model::decode_kernel::kernel_seconds();
         let mut rng = step_rng(self.opts.seed, self.step);
         // 1. The batch: scenes drawn with their input views and the rays to supervise.
         let samples = self.sample_batch(&mut rng)?;
@@ -487,6 +491,7 @@ impl Trainer {
         self.update(&loss, loss_value.is_finite(), &mut log)?;
         self.step += 1;
         log.seconds = started.elapsed().as_secs_f64();
+        log.decoder_s = crate::model::decode_kernel::kernel_seconds() - kernel_before;
         log.rays_per_s = forward.targets.len() as f64 / 3.0 / log.seconds;
         Ok(log)
     }
