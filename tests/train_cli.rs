@@ -379,7 +379,7 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
         .arg(&start)
         .args([
             "--set",
-            r#"inference={"slots":3,"tries":2,"refine":1,"refine_lr":0.02,"refine_frame_lr":0}"#,
+            r#"inference={"slots":3,"tries":2,"refine":1,"refine_lr":0.02,"refine_frame_lr":0,"refine_rays":64}"#,
             "-o",
         ])
         .arg(&configured)
@@ -429,12 +429,16 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
         (
             doc["refine"]["lr"].as_f64().unwrap(),
             doc["refine"]["frame_lr"].as_f64().unwrap(),
+            doc["refine"]["rays"].as_u64().unwrap(),
         )
     };
     let configured_eval = eval(&[]);
     assert_eq!(settings(&configured_eval), (3, 2, 1));
-    assert_eq!(rates(&configured_eval), (0.02, 0.0));
-    assert_eq!(rates(&eval(&["--refine-lr", "0.05"])), (0.05, 0.0));
+    assert_eq!(rates(&configured_eval), (0.02, 0.0, 64));
+    assert_eq!(
+        rates(&eval(&["--refine-lr", "0.05", "--refine-rays", "32"])),
+        (0.05, 0.0, 32)
+    );
     assert_eq!(settings(&eval(&["--fast"])), (7, 1, 0));
     assert_eq!(
         settings(&eval(&["--refine", "0", "--slots", "4"])),

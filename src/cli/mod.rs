@@ -236,9 +236,10 @@ pub struct FitArgs {
     pub refine_lr: Option<f64>,
 
     /// Pixels of the input image rendered per refinement step (all when the image has fewer;
-    /// 512 makes the default encoding 1.7x faster for -0.05 dB on novel views, docs/speed.md).
-    #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().rays, value_name = "R", value_parser = parse::at_least_one)]
-    pub refine_rays: usize,
+    /// default: the model's, else 1,024; 512 makes the bundled model's default encoding 1.7x
+    /// faster for -0.05 dB on novel views, docs/speed.md).
+    #[arg(long, value_name = "R", value_parser = parse::at_least_one)]
+    pub refine_rays: Option<usize>,
 
     /// With several input views: up to N slots added where the views agree on something the
     /// refined slots do not draw (blobs of the renders' residual whose centre rays meet), then
@@ -308,6 +309,7 @@ impl FitArgs {
             refine: self.refine.unwrap_or(base.refine),
             refine_lr: self.refine_lr.or(base.refine_lr),
             refine_frame_lr: self.refine_frame_lr.or(base.refine_frame_lr),
+            refine_rays: self.refine_rays.or(base.refine_rays),
         }
     }
 
@@ -390,7 +392,7 @@ impl FitArgs {
         crate::encode::refine::RefineOptions {
             steps: encoding.refine,
             lr: encoding.refine_lr.unwrap_or(defaults.lr),
-            rays: self.refine_rays,
+            rays: encoding.refine_rays.unwrap_or(defaults.rays),
             anchor_weight: self.refine_anchor,
             frame_lr: encoding.refine_frame_lr.unwrap_or(defaults.frame_lr),
             support: self.refine_support,
@@ -423,6 +425,7 @@ mod tests {
                 refine: 50,
                 refine_lr: None,
                 refine_frame_lr: None,
+                refine_rays: None,
             }),
             ..Config::small()
         };
@@ -448,6 +451,7 @@ mod tests {
             refine: 50,
             refine_lr: None,
             refine_frame_lr: None,
+            refine_rays: None,
         };
         let tuned = Config {
             inference: Some(measured),
@@ -468,6 +472,7 @@ mod tests {
                 refine: 0,
                 refine_lr: None,
                 refine_frame_lr: None,
+                refine_rays: None,
             }
         );
         assert_eq!(
@@ -478,6 +483,7 @@ mod tests {
                 refine: 0,
                 refine_lr: None,
                 refine_frame_lr: None,
+                refine_rays: None,
             }
         );
         // A model's measured learning rates reach the refinement unless a flag says otherwise;
@@ -487,6 +493,7 @@ mod tests {
                 refine: 25,
                 refine_lr: Some(0.02),
                 refine_frame_lr: Some(0.015),
+                refine_rays: Some(512),
                 ..measured
             }),
             ..Config::small()
@@ -495,12 +502,18 @@ mod tests {
             let args =
                 EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
             let opts = args.fit.options(&args.fit.encoding(cfg, args.slots), 0);
-            (opts.steps, opts.lr, opts.frame_lr)
+            (opts.steps, opts.lr, opts.frame_lr, opts.rays)
         };
-        assert_eq!(rates(&rated, &[]), (25, 0.02, 0.015));
-        assert_eq!(rates(&rated, &["--refine-lr", "0.05"]), (25, 0.05, 0.015));
-        assert_eq!(rates(&rated, &["--refine-frame-lr", "0"]), (25, 0.02, 0.0));
-        assert_eq!(rates(&tuned, &[]), (50, 0.01, 0.003));
+        assert_eq!(rates(&rated, &[]), (25, 0.02, 0.015, 512));
+        assert_eq!(
+            rates(&rated, &["--refine-lr", "0.05", "--refine-rays", "2048"]),
+            (25, 0.05, 0.015, 2048)
+        );
+        assert_eq!(
+            rates(&rated, &["--refine-frame-lr", "0"]),
+            (25, 0.02, 0.0, 512)
+        );
+        assert_eq!(rates(&tuned, &[]), (50, 0.01, 0.003, 1024));
         // --fast with --tries or --refine is a usage error.
         for flags in [["--fast", "--tries", "2"], ["--fast", "--refine", "2"]] {
             let err = EncodeArgs::try_parse_from([&["colf-encode", "x.png"], &flags[..]].concat())

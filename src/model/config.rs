@@ -224,6 +224,10 @@ pub struct InferenceConfig {
     /// `--refine-frame-lr`'s default; 0: frames fixed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine_frame_lr: Option<f64>,
+    /// Pixels of the input image each refinement step renders (absent: `--refine-rays`'s
+    /// default): a larger decoder can keep the encoding's cost with fewer.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_rays: Option<usize>,
 }
 
 /// Largest slot count an encoding accepts: slot attention runs with any K, but beyond this a
@@ -236,6 +240,8 @@ const MAX_INFERENCE_REFINE: usize = 100_000;
 /// Largest refinement learning rate a config or colf-encode's flags may ask for: latents live in
 /// a unit-scale space, so a step far above 1 can only overflow.
 pub const MAX_REFINE_LR: f64 = 100.0;
+/// Largest `inference.refine_rays`: a 1024² image's pixels (more is a typo, and memory).
+const MAX_INFERENCE_REFINE_RAYS: usize = 1 << 20;
 
 impl InferenceConfig {
     /// One encoder pass with `slots` slots.
@@ -246,6 +252,7 @@ impl InferenceConfig {
             refine: 0,
             refine_lr: None,
             refine_frame_lr: None,
+            refine_rays: None,
         }
     }
 }
@@ -597,6 +604,14 @@ impl Config {
             if !rate_ok(inference.refine_lr, false) || !rate_ok(inference.refine_frame_lr, true) {
                 bail!("model config: `inference` needs refine_lr in (0, {MAX_REFINE_LR}] and refine_frame_lr in [0, {MAX_REFINE_LR}]");
             }
+            if inference
+                .refine_rays
+                .is_some_and(|r| !(1..=MAX_INFERENCE_REFINE_RAYS).contains(&r))
+            {
+                bail!(
+                    "model config: `inference` needs 1 ≤ refine_rays ≤ {MAX_INFERENCE_REFINE_RAYS}"
+                );
+            }
             if self.volumetric.is_some() && inference.refine > 0 {
                 bail!("model config: `inference.refine` applies to light-field models, not the volumetric baseline");
             }
@@ -681,6 +696,7 @@ mod tests {
             refine: 50,
             refine_lr: None,
             refine_frame_lr: None,
+            refine_rays: None,
         };
         assert_eq!(cfg.default_inference(), measured);
         assert!(!cfg.to_json().contains("refine_lr"), "identities unchanged");
@@ -701,6 +717,8 @@ mod tests {
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_lr":-0.01}"#,
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_lr":1000}"#,
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_frame_lr":-1}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_rays":0}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_rays":2000000}"#,
         ] {
             assert!(small.with_overrides(&[bad.into()]).is_err(), "{bad}");
         }
@@ -717,6 +735,14 @@ mod tests {
             (Some(0.02), Some(0.0))
         );
         assert_eq!(Config::from_json(&rates.to_json()).unwrap(), rates);
+        // So does the pixels a step renders.
+        let rays = small
+            .with_overrides(&[
+                r#"inference={"slots":12,"tries":2,"refine":25,"refine_rays":512}"#.into(),
+            ])
+            .unwrap();
+        assert_eq!(rays.default_inference().refine_rays, Some(512));
+        assert_eq!(Config::from_json(&rays.to_json()).unwrap(), rays);
         // The volumetric baseline cannot be refined.
         let volumetric = Config::volumetric();
         assert!(volumetric
