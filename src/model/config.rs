@@ -224,8 +224,8 @@ pub struct InferenceConfig {
     /// `--refine-frame-lr`'s default; 0: frames fixed).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine_frame_lr: Option<f64>,
-    /// Pixels of the input image each refinement step renders (absent: `--refine-rays`'s
-    /// default): a larger decoder can keep the encoding's cost with fewer.
+    /// Pixels of the input image each refinement step renders (absent: `RefineOptions`'
+    /// default, 1,024): a larger decoder can keep the encoding's cost with fewer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine_rays: Option<usize>,
 }
