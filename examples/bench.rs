@@ -527,37 +527,93 @@ const HALF_REFINEMENT: [&str; 6] = [
     "0.015",
 ];
 
+/// One held-out colf-synth scene (test split, seed 9) at `size`², in a folder that lives as long
+/// as this value: what the encoding and model-file rows measure on.
+struct BenchScene {
+    dir: tempfile::TempDir,
+}
+
+impl BenchScene {
+    fn new(size: usize) -> Result<BenchScene> {
+        let dir = tempfile::tempdir()?;
+        let synth = sibling_binary("colf-synth")?;
+        let status = std::process::Command::new(&synth)
+            .args([
+                "--scenes", "1", "--seed", "9", "--split", "test", "-q", "--size",
+            ])
+            .arg(size.to_string())
+            .arg("--out")
+            .arg(dir.path())
+            .status()
+            .with_context(|| format!("running {}", synth.display()))?;
+        if !status.success() {
+            bail!("colf-synth failed");
+        }
+        Ok(BenchScene { dir })
+    }
+
+    /// View 0 as `model`'s encoder reads it, and the scene's cameras.
+    fn view_0(&self, model: &Colf) -> Result<(colf::image_io::RgbImage32, colf::camera::Cameras)> {
+        let scene = self.dir.path().join("scene_00000");
+        let png = std::fs::read(scene.join("view_000.png"))?;
+        let image = colf::image_io::decode_rgb_for_encoder(
+            &png,
+            "view_000.png",
+            model.config().encoder_size as u32,
+            colf::image_io::ENCODE_FULL_RES_PIXELS,
+        )?;
+        let cameras =
+            colf::camera::Cameras::read(&scene.join("transforms.json").to_string_lossy())?;
+        Ok((image, cameras))
+    }
+}
+
+/// A frame of a model file as `colf-render` draws it: view 0 of the bench scene encoded in one
+/// pass (`colf-encode --fast --slots SLOTS`), rendered exactly — with the slots' shadows and the
+/// model's own reaches — from view 1, at the scene's `size`². Unlike the preset rows (fresh
+/// weights, slots on a ring), this is the shipped model on slots where its encoder puts them, so
+/// `slot_reach` leaves out what it would in use; no FLOP count, as that depends on the slots'
+/// placement.
+fn measure_model_render(path: &str, slots: usize, size: usize, reps: usize) -> Result<Value> {
+    use clap::Parser;
+    let scene = BenchScene::new(size)?;
+    let model = Colf::load(std::path::Path::new(path))?;
+    let (image, cameras) = scene.view_0(&model)?;
+    let slot_flag = slots.to_string();
+    let args = colf::cli::encode::EncodeArgs::try_parse_from([
+        "colf-encode",
+        "view_000.png",
+        "--fast",
+        "--slots",
+        &slot_flag,
+    ])?;
+    let opts = colf::encode::EncodeOptions {
+        camera: Some(cameras.frames[0].clone()),
+        source: "view_000.png".into(),
+        ..args.fit.encode_options(model.config(), None, 0)
+    };
+    let codes = colf::encode::encode_image(&model, &image, &opts)?;
+    let prepared = colf::render::PreparedScene::new(&model, &codes, path)?;
+    let frame = &cameras.frames[1];
+    let (s, runs, cpu) = time_median(reps, || prepared.render_frame(&model, frame).map(|_| ()))?;
+    Ok(json!({
+        "what": format!("render one frame ({path}, one-pass encoding of a colf-synth scene)"),
+        "preset": "model file", "slots": codes.slots.len(), "resolution": size,
+        "ms": s * 1e3, "fps": 1.0 / s, "cpu_ms": cpu * 1e3, "runs": runs,
+        "peak_mib": peak_rss_mib(),
+    }))
+}
+
 /// The bundled default model's default encoding (its measured slots, tries and refinement, as
 /// `colf-encode` with no flags, or with `HALF_REFINEMENT` when `half`) of view 0 of a colf-synth
 /// scene of `size`², with the refinement through the fused decoder or (`reference`) candle's
 /// autograd. Reports wall and CPU time.
 fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize) -> Result<Value> {
     use clap::Parser;
-    let dir = tempfile::tempdir()?;
-    let synth = sibling_binary("colf-synth")?;
-    let status = std::process::Command::new(&synth)
-        .args([
-            "--scenes", "1", "--seed", "9", "--split", "test", "-q", "--size",
-        ])
-        .arg(size.to_string())
-        .arg("--out")
-        .arg(dir.path())
-        .status()
-        .with_context(|| format!("running {}", synth.display()))?;
-    if !status.success() {
-        bail!("colf-synth failed");
-    }
-    let scene = dir.path().join("scene_00000");
+    let scene = BenchScene::new(size)?;
     let mut model = Colf::load(std::path::Path::new("models/default.safetensors"))?;
     model.set_reference_decoder(reference);
-    let png = std::fs::read(scene.join("view_000.png"))?;
-    let image = colf::image_io::decode_rgb_for_encoder(
-        &png,
-        "view_000.png",
-        model.config().encoder_size as u32,
-        colf::image_io::ENCODE_FULL_RES_PIXELS,
-    )?;
-    let cameras = colf::camera::Cameras::read(&scene.join("transforms.json").to_string_lossy())?;
+    let (image, cameras) = scene.view_0(&model)?;
     let flags: &[&str] = if half { &HALF_REFINEMENT } else { &[] };
     let args = colf::cli::encode::EncodeArgs::try_parse_from(
         [&["colf-encode", "view_000.png"], flags].concat(),
@@ -610,6 +666,14 @@ fn run_one(spec: &Value) -> Result<Value> {
             reps,
         ),
         Some("encode") => measure_encode(spec["preset"].as_str().unwrap_or("small"), reps),
+        Some("render-model") => measure_model_render(
+            spec["model"]
+                .as_str()
+                .unwrap_or("models/default.safetensors"),
+            spec["slots"].as_u64().unwrap_or(7) as usize,
+            spec["size"].as_u64().unwrap_or(128) as usize,
+            reps,
+        ),
         Some("train") => measure_train(
             spec["preset"].as_str().unwrap_or("default"),
             spec["reference"].as_bool().unwrap_or(false),
@@ -696,6 +760,17 @@ fn main() -> Result<()> {
         }
     }
     if !only_train {
+        // The shipped model file (and any `--model PATH` given) as colf-render draws a 7-slot
+        // frame: issue 37's frame-rate target is read on this row.
+        let mut model_files = vec!["models/default.safetensors".to_string()];
+        model_files.extend(
+            args.iter()
+                .position(|a| a == "--model")
+                .and_then(|i| args.get(i + 1).cloned()),
+        );
+        for model in model_files {
+            specs.push(json!({"kind": "render-model", "model": model, "slots": 7, "size": 128}));
+        }
         for preset in ["small", "paper"] {
             for slots in [2, 7, 60] {
                 specs
