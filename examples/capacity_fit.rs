@@ -12,13 +12,25 @@
 //! 4. **free fields + heads** (`--heads`): the same, and the model's shared colour, ordering
 //!    and shadow heads and compositor fitted to this scene as well.
 //!
+//! With `--wide-latents N`, two more stages follow the free hidden one (and the free fields
+//! are skipped), each `--free-steps` Adam steps at the latents' learning rate (`--latent-lr`):
+//! - **latents, longer**: the fitted latents fitted on with this stage's optimiser (the
+//!   reference for the next);
+//! - **wider latents**: each slot's latent gets N more values, which reach every hidden layer's
+//!   pre-activation through fixed random weights (drawn with the root-mean-square of the
+//!   trained ones) beside the trained ones; the hypernetwork's RMS norm then spans all D + N
+//!   values. A model trained with slots of D + N values would have learnt those weights, so
+//!   this bounds from below what wider slots could draw with the same heads (issue 37: the
+//!   paper's slots have 128 values, colf's 64).
+//!
 //! Each stage prints the mean PSNR of the fitted views (rendered whole, by the same decode).
 //! If free fields reach far above the latents' bound, the light fields and the compositor can
 //! draw the scene and the hypernetworks are what limit: their span (free hidden near the
 //! latents: the heads' H directions) or the latent → hidden map (free hidden far above).
 //!
 //! Usage: `capacity_fit --data DIR [--model M] [--scenes 3] [--first 0] [--views 4] [--latent-steps 600]
-//! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads] [--no-free-fields]`
+//! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads] [--no-free-fields]
+//! [--wide-latents N] [--latent-lr 1e-2]`
 //! (`--lr` for free weights, `--hidden-lr` for free hidden activations: a hidden unit is
 //! about as large as a latent, a weight two orders smaller).
 
@@ -52,6 +64,9 @@ struct Args {
     heads: bool,
     /// Stop after the free hidden stage (`--no-free-fields`).
     no_free_fields: bool,
+    /// Extra latent values of the wider-latents stage (0: no such stage).
+    wide_latents: usize,
+    latent_lr: f64,
 }
 
 fn parse_args() -> Result<Args> {
@@ -68,6 +83,8 @@ fn parse_args() -> Result<Args> {
         hidden_lr: 1e-2,
         heads: false,
         no_free_fields: false,
+        wide_latents: 0,
+        latent_lr: 1e-2,
     };
     let mut argv = std::env::args().skip(1);
     while let Some(flag) = argv.next() {
@@ -93,11 +110,13 @@ fn parse_args() -> Result<Args> {
             "--rays" => a.rays = val.parse().context("--rays")?,
             "--lr" => a.lr = val.parse().context("--lr")?,
             "--hidden-lr" => a.hidden_lr = val.parse().context("--hidden-lr")?,
+            "--wide-latents" => a.wide_latents = val.parse().context("--wide-latents")?,
+            "--latent-lr" => a.latent_lr = val.parse().context("--latent-lr")?,
             other => bail!("unknown option {other}"),
         }
     }
     if a.data.as_os_str().is_empty() || a.views == 0 || a.rays == 0 {
-        bail!("usage: capacity_fit --data DIR [--model M] [--scenes N] [--views V] [--latent-steps S] [--free-steps S] [--rays R] [--lr LR] [--hidden-lr LR] [--heads]");
+        bail!("usage: capacity_fit --data DIR [--model M] [--scenes N] [--views V] [--latent-steps S] [--free-steps S] [--rays R] [--lr LR] [--hidden-lr LR] [--heads] [--wide-latents N] [--latent-lr LR]");
     }
     Ok(a)
 }
@@ -184,17 +203,190 @@ fn fit(model: &Colf, pixels: &Pixels, frames: &[DMat4], stage: Stage, args: &Arg
     views_psnr(model, pixels, &(stage.fields)()?, frames)
 }
 
+/// The foreground hypernetwork's hidden layers (`fc1`: weight [H, D], bias [H]; one, or one per
+/// light-field layer), read from the model file.
+fn fg_hidden_layers(path: &std::path::Path, model: &Colf) -> Result<Vec<(Tensor, Tensor)>> {
+    let tensors = candle_core::safetensors::load(path, &candle_core::Device::Cpu)?;
+    let cfg = model.config();
+    let prefixes: Vec<String> = if cfg.hypernet_per_layer {
+        (0..cfg.lfn_dims().len() - 1)
+            .map(|l| format!("hypernet_fg.layers.{l}.fc1"))
+            .collect()
+    } else {
+        vec!["hypernet_fg.fc1".to_string()]
+    };
+    prefixes
+        .iter()
+        .map(|p| {
+            let get = |name: &str| -> Result<Tensor> {
+                Ok(tensors
+                    .get(&format!("{p}.{name}"))
+                    .with_context(|| format!("{}: no tensor {p}.{name}", path.display()))?
+                    .to_dtype(candle_core::DType::F32)?)
+            };
+            Ok((get("weight")?, get("bias")?))
+        })
+        .collect()
+}
+
+/// The hidden activations of latents [K, D + N] through `layers`' weights, each widened by
+/// fixed weights [H, N] for the N extra values (none: exactly the model's `hidden`), with the
+/// hypernetwork's RMS norm over all D + N values when the model has it. Under the norm, N zero
+/// values would scale the others up by √((D + N)/D), so the widened weights are scaled down by
+/// as much: with the extra values at zero the hidden activations are the model's.
+fn wide_hidden(
+    model: &Colf,
+    latents: &Tensor,
+    layers: &[(Tensor, Tensor)],
+    extra: &[Tensor],
+) -> Result<Tensor> {
+    let rms_norm = model.config().hypernet_rms_norm;
+    let x = if rms_norm {
+        let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
+        latents.broadcast_div(&rms)?
+    } else {
+        latents.clone()
+    };
+    let hidden = layers
+        .iter()
+        .enumerate()
+        .map(|(l, (w, b))| {
+            let w = match extra.get(l) {
+                Some(e) => {
+                    let (d, n) = (w.dim(1)?, e.dim(1)?);
+                    let scale = if rms_norm {
+                        (d as f64 / (d + n) as f64).sqrt()
+                    } else {
+                        1.0
+                    };
+                    (Tensor::cat(&[w, e], 1)? * scale)?
+                }
+                None => w.clone(),
+            };
+            Ok(x.matmul(&w.t()?)?.broadcast_add(b)?.relu()?)
+        })
+        .collect::<Result<Vec<Tensor>>>()?;
+    Ok(Tensor::cat(&hidden, 1)?)
+}
+
+/// The two `--wide-latents` stages for one scene's fitted latents `fg` [1, K, D]: the latents
+/// fitted on alone, then with `args.wide_latents` more values each; their PSNRs.
+#[allow(clippy::too_many_arguments)]
+fn wide_latent_stages(
+    model: &Colf,
+    model_path: &std::path::Path,
+    pixels: &Pixels,
+    frames: &[DMat4],
+    fg: &Tensor,
+    bg_fields: &SlotWeights,
+    scene: usize,
+    args: &Args,
+) -> Result<(f64, f64)> {
+    let lf = model
+        .model()
+        .light_field()
+        .context("not a light-field model")?;
+    let (_, k, d) = fg.dims3()?;
+    let layers = fg_hidden_layers(model_path, model)?;
+    let mut rng = StdRng::seed_from_u64(2000 + scene as u64);
+    // Fixed weights for the extra values, as large as the trained ones (root-mean-square).
+    let extra = layers
+        .iter()
+        .map(|(w, _)| {
+            let rms = w.sqr()?.mean_all()?.sqrt()?.to_scalar::<f32>()?;
+            let a = rms * 3f32.sqrt();
+            let h = w.dim(0)?;
+            let values: Vec<f32> = (0..h * args.wide_latents)
+                .map(|_| rng.random_range(-a..a))
+                .collect();
+            Ok(Tensor::from_vec(
+                values,
+                (h, args.wide_latents),
+                model.device(),
+            )?)
+        })
+        .collect::<Result<Vec<Tensor>>>()?;
+    // Both stages must start from the model's own hidden activations (the weights read from
+    // the file, and the widened ones at zero extra values), or they measure something else.
+    let own = lf.hypernet_fg.hidden(&fg.reshape((k, d))?)?;
+    let zeros = Tensor::zeros(
+        (k, args.wide_latents),
+        candle_core::DType::F32,
+        model.device(),
+    )?;
+    let widened_start = Tensor::cat(&[&fg.reshape((k, d))?, &zeros], 1)?;
+    for (what, start) in [
+        (
+            "read",
+            wide_hidden(model, &fg.reshape((k, d))?, &layers, &[])?,
+        ),
+        (
+            "widened",
+            wide_hidden(model, &widened_start, &layers, &extra)?,
+        ),
+    ] {
+        let gap = (start - &own)?.abs()?.max_all()?.to_scalar::<f32>()?;
+        if gap > 1e-4 {
+            bail!("the {what} hidden layers differ from the model's by {gap}");
+        }
+    }
+    let mut scores = Vec::new();
+    for wide in [false, true] {
+        let z = Var::from_tensor(&fg.reshape((k, d))?.detach())?;
+        let z_extra = Var::zeros(
+            (k, args.wide_latents),
+            candle_core::DType::F32,
+            model.device(),
+        )?;
+        let fields = || -> Result<SlotWeights> {
+            let (latents, extra): (Tensor, &[Tensor]) = if wide {
+                (
+                    Tensor::cat(&[z.as_tensor(), z_extra.as_tensor()], 1)?,
+                    &extra,
+                )
+            } else {
+                (z.as_tensor().clone(), &[])
+            };
+            let hidden = wide_hidden(model, &latents, &layers, extra)?;
+            let fg_fields = SlotWeights {
+                layers: lf.hypernet_fg.from_hidden(&hidden)?,
+            };
+            Ok(SlotWeights::join_scenes(bg_fields, Some(&fg_fields), 1, k)?)
+        };
+        let mut vars = vec![("latents".to_string(), z.clone())];
+        if wide {
+            vars.push(("extra".to_string(), z_extra.clone()));
+        }
+        let stage = Stage {
+            vars,
+            lr: args.latent_lr,
+            fields: &fields,
+            seed: 3000 + scene as u64,
+        };
+        scores.push(fit(model, pixels, frames, stage, args)?);
+    }
+    Ok((scores[0], scores[1]))
+}
+
 fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64
 }
 
 fn main() -> Result<()> {
     let args = parse_args()?;
-    let model = colf::cli::model_path::load_model(args.model.as_deref())?;
+    let model_path = colf::cli::model_path::resolve_model_path(args.model.as_deref())?;
+    let model = Colf::load(&model_path)?;
     let data = Dataset::open(&args.data)?;
     let (mut latents, mut free, mut heads) = (Vec::new(), Vec::new(), Vec::new());
-    let mut hidden = Vec::new();
-    println!("| scene | latents fitted | free hidden | free fields | free fields + heads |");
+    let (mut hidden, mut longer, mut wider) = (Vec::new(), Vec::new(), Vec::new());
+    if args.wide_latents > 0 {
+        println!(
+            "| scene | latents fitted | free hidden | latents, longer | latents + {} values |",
+            args.wide_latents
+        );
+    } else {
+        println!("| scene | latents fitted | free hidden | free fields | free fields + heads |");
+    }
     println!("| --- | ---: | ---: | ---: | ---: |");
     for i in args.first..(args.first + args.scenes).min(data.len()) {
         let scene = data.load(i)?;
@@ -256,6 +448,30 @@ fn main() -> Result<()> {
         let p_hidden = fit(&model, &pixels, &frames, stage, &args)?;
         eprintln!("{}: free hidden {p_hidden:.2} dB", scene.name);
         hidden.push(p_hidden);
+        if args.wide_latents > 0 {
+            let (p_longer, p_wide) = wide_latent_stages(
+                &model,
+                &model_path,
+                &pixels,
+                &frames,
+                &fg,
+                &bg_fields,
+                i,
+                &args,
+            )?;
+            eprintln!(
+                "{}: latents, longer {p_longer:.2} dB; + {} values {p_wide:.2} dB",
+                scene.name, args.wide_latents
+            );
+            println!(
+                "| {} | {p_latents:.2} | {p_hidden:.2} | {p_longer:.2} | {p_wide:.2} |",
+                scene.name
+            );
+            latents.push(p_latents);
+            longer.push(p_longer);
+            wider.push(p_wide);
+            continue;
+        }
         if args.no_free_fields {
             println!(
                 "| {} | {p_latents:.2} | {p_hidden:.2} | — | — |",
@@ -305,6 +521,16 @@ fn main() -> Result<()> {
         );
         latents.push(p_latents);
         free.push(p_free);
+    }
+    if args.wide_latents > 0 {
+        println!(
+            "| mean | {:.2} | {:.2} | {:.2} | {:.2} |",
+            mean(&latents),
+            mean(&hidden),
+            mean(&longer),
+            mean(&wider)
+        );
+        return Ok(());
     }
     let heads = if heads.is_empty() {
         "—".into()
