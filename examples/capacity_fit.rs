@@ -41,7 +41,7 @@ use colf::encode::refine::Pixels;
 use colf::encode::InputView;
 use colf::evaluate::fit_latents_to_views;
 use colf::metrics::psnr;
-use colf::model::hypernet::GeneratedLayer;
+use colf::model::hypernet::{GeneratedLayer, HyperNet};
 use colf::model::{Colf, SlotWeights};
 use colf::optim::{Adam, AdamConfig};
 use glam::DMat4;
@@ -203,50 +203,19 @@ fn fit(model: &Colf, pixels: &Pixels, frames: &[DMat4], stage: Stage, args: &Arg
     views_psnr(model, pixels, &(stage.fields)()?, frames)
 }
 
-/// The foreground hypernetwork's hidden layers (`fc1`: weight [H, D], bias [H]; one, or one per
-/// light-field layer), read from the model file.
-fn fg_hidden_layers(path: &std::path::Path, model: &Colf) -> Result<Vec<(Tensor, Tensor)>> {
-    let tensors = candle_core::safetensors::load(path, &candle_core::Device::Cpu)?;
-    let cfg = model.config();
-    let prefixes: Vec<String> = if cfg.hypernet_per_layer {
-        (0..cfg.lfn_dims().len() - 1)
-            .map(|l| format!("hypernet_fg.layers.{l}.fc1"))
-            .collect()
-    } else {
-        vec!["hypernet_fg.fc1".to_string()]
-    };
-    prefixes
-        .iter()
-        .map(|p| {
-            let get = |name: &str| -> Result<Tensor> {
-                Ok(tensors
-                    .get(&format!("{p}.{name}"))
-                    .with_context(|| format!("{}: no tensor {p}.{name}", path.display()))?
-                    .to_dtype(candle_core::DType::F32)?)
-            };
-            Ok((get("weight")?, get("bias")?))
-        })
-        .collect()
-}
-
 /// The hidden activations of latents [K, D + N] through `layers`' weights, each widened by
 /// fixed weights [H, N] for the N extra values (none: exactly the model's `hidden`), with the
 /// hypernetwork's RMS norm over all D + N values when the model has it. Under the norm, N zero
 /// values would scale the others up by √((D + N)/D), so the widened weights are scaled down by
 /// as much: with the extra values at zero the hidden activations are the model's.
 fn wide_hidden(
-    model: &Colf,
+    hypernet: &HyperNet,
     latents: &Tensor,
     layers: &[(Tensor, Tensor)],
     extra: &[Tensor],
 ) -> Result<Tensor> {
-    let rms_norm = model.config().hypernet_rms_norm;
-    let x = if rms_norm {
-        let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
-        latents.broadcast_div(&rms)?
-    } else {
-        latents.clone()
-    };
+    let rms_norm = hypernet.rms_norm();
+    let x = hypernet.normalized(latents)?;
     let hidden = layers
         .iter()
         .enumerate()
@@ -271,10 +240,8 @@ fn wide_hidden(
 
 /// The two `--wide-latents` stages for one scene's fitted latents `fg` [1, K, D]: the latents
 /// fitted on alone, then with `args.wide_latents` more values each; their PSNRs.
-#[allow(clippy::too_many_arguments)]
 fn wide_latent_stages(
     model: &Colf,
-    model_path: &std::path::Path,
     pixels: &Pixels,
     frames: &[DMat4],
     fg: &Tensor,
@@ -286,8 +253,10 @@ fn wide_latent_stages(
         .model()
         .light_field()
         .context("not a light-field model")?;
+    let hypernet = &lf.hypernet_fg;
     let (_, k, d) = fg.dims3()?;
-    let layers = fg_hidden_layers(model_path, model)?;
+    let fitted = fg.reshape((k, d))?.detach();
+    let layers = hypernet.hidden_layer_weights();
     let mut rng = StdRng::seed_from_u64(2000 + scene as u64);
     // Fixed weights for the extra values, as large as the trained ones (root-mean-square).
     let extra = layers
@@ -306,23 +275,21 @@ fn wide_latent_stages(
             )?)
         })
         .collect::<Result<Vec<Tensor>>>()?;
-    // Both stages must start from the model's own hidden activations (the weights read from
-    // the file, and the widened ones at zero extra values), or they measure something else.
-    let own = lf.hypernet_fg.hidden(&fg.reshape((k, d))?)?;
+    // Both stages must start from the model's own hidden activations (the weights as this
+    // program applies them, and the widened ones at zero extra values), or they measure
+    // something else.
+    let own = hypernet.hidden(&fitted)?;
     let zeros = Tensor::zeros(
         (k, args.wide_latents),
         candle_core::DType::F32,
         model.device(),
     )?;
-    let widened_start = Tensor::cat(&[&fg.reshape((k, d))?, &zeros], 1)?;
+    let widened_start = Tensor::cat(&[&fitted, &zeros], 1)?;
     for (what, start) in [
-        (
-            "read",
-            wide_hidden(model, &fg.reshape((k, d))?, &layers, &[])?,
-        ),
+        ("read", wide_hidden(hypernet, &fitted, &layers, &[])?),
         (
             "widened",
-            wide_hidden(model, &widened_start, &layers, &extra)?,
+            wide_hidden(hypernet, &widened_start, &layers, &extra)?,
         ),
     ] {
         let gap = (start - &own)?.abs()?.max_all()?.to_scalar::<f32>()?;
@@ -332,7 +299,7 @@ fn wide_latent_stages(
     }
     let mut scores = Vec::new();
     for wide in [false, true] {
-        let z = Var::from_tensor(&fg.reshape((k, d))?.detach())?;
+        let z = Var::from_tensor(&fitted)?;
         let z_extra = Var::zeros(
             (k, args.wide_latents),
             candle_core::DType::F32,
@@ -347,9 +314,9 @@ fn wide_latent_stages(
             } else {
                 (z.as_tensor().clone(), &[])
             };
-            let hidden = wide_hidden(model, &latents, &layers, extra)?;
+            let hidden = wide_hidden(hypernet, &latents, &layers, extra)?;
             let fg_fields = SlotWeights {
-                layers: lf.hypernet_fg.from_hidden(&hidden)?,
+                layers: hypernet.from_hidden(&hidden)?,
             };
             Ok(SlotWeights::join_scenes(bg_fields, Some(&fg_fields), 1, k)?)
         };
@@ -374,8 +341,7 @@ fn mean(v: &[f64]) -> f64 {
 
 fn main() -> Result<()> {
     let args = parse_args()?;
-    let model_path = colf::cli::model_path::resolve_model_path(args.model.as_deref())?;
-    let model = Colf::load(&model_path)?;
+    let model = colf::cli::model_path::load_model(args.model.as_deref())?;
     let data = Dataset::open(&args.data)?;
     let (mut latents, mut free, mut heads) = (Vec::new(), Vec::new(), Vec::new());
     let (mut hidden, mut longer, mut wider) = (Vec::new(), Vec::new(), Vec::new());
@@ -449,16 +415,8 @@ fn main() -> Result<()> {
         eprintln!("{}: free hidden {p_hidden:.2} dB", scene.name);
         hidden.push(p_hidden);
         if args.wide_latents > 0 {
-            let (p_longer, p_wide) = wide_latent_stages(
-                &model,
-                &model_path,
-                &pixels,
-                &frames,
-                &fg,
-                &bg_fields,
-                i,
-                &args,
-            )?;
+            let (p_longer, p_wide) =
+                wide_latent_stages(&model, &pixels, &frames, &fg, &bg_fields, i, &args)?;
             eprintln!(
                 "{}: latents, longer {p_longer:.2} dB; + {} values {p_wide:.2} dB",
                 scene.name, args.wide_latents

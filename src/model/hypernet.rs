@@ -155,15 +155,38 @@ impl HyperNet {
     /// latents [S, D] → each hidden layer's activations [S, H] (one, or one per light-field
     /// layer).
     fn hidden_layers(&self, latents: &Tensor) -> Result<Vec<Tensor>> {
-        let latents = if self.rms_norm {
-            let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
-            latents.broadcast_div(&rms)?
-        } else {
-            latents.clone()
-        };
+        let latents = self.normalized(latents)?;
         self.fc1
             .iter()
             .map(|fc1| linear_layer(&latents, fc1, Activation::Relu))
+            .collect()
+    }
+
+    /// latents [S, D] as the hidden layers read them: divided by their root-mean-square when
+    /// `Config::hypernet_rms_norm` is set, else as they are.
+    pub fn normalized(&self, latents: &Tensor) -> Result<Tensor> {
+        if !self.rms_norm {
+            return Ok(latents.clone());
+        }
+        let rms = (latents.sqr()?.mean_keepdim(1)? + 1e-6)?.sqrt()?;
+        latents.broadcast_div(&rms)
+    }
+
+    /// Whether [`HyperNet::normalized`] divides by the latents' root-mean-square.
+    pub fn rms_norm(&self) -> bool {
+        self.rms_norm
+    }
+
+    /// The hidden layers' weights [H, D] and biases [H] (one, or one per light-field layer):
+    /// what maps a latent to the hidden activations, for studies of that map
+    /// (`examples/capacity_fit --wide-latents`).
+    pub fn hidden_layer_weights(&self) -> Vec<(Tensor, Tensor)> {
+        self.fc1
+            .iter()
+            .map(|fc1| {
+                let bias = fc1.bias().expect("hypernetwork layers have biases").clone();
+                (fc1.weight().clone(), bias)
+            })
             .collect()
     }
 
