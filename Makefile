@@ -429,11 +429,12 @@ model-both: build
 # a fresh paper-sized decoder needs to reach the same point (docs/training-log.md). Runs for days
 # on one core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and
 # re-running resumes where it stopped (nohup, one thread: see docs/training.md). The result stays
-# in $(PAPER_RUN)/p10.safetensors until it is shown better than the bundled default.
+# in $(PAPER_RUN)/p11.safetensors until it is shown better than the bundled default.
 #
-# p10 is runs p2's stages p6–p9 in one (the machine lost them at p9's step ≈ 22,000, 2026-11-28):
-# each `--set` below was added by one of those stages, for the reason given beside it, and grows
-# the same from the bundled model all at once.
+# p11 is p10 (itself run p2's stages p6–p9 in one) with the paper's 128-value slots: each `--set`
+# below was added by one of those stages or runs, for the reason given beside it, and grows the
+# same from the bundled model all at once. (The machine lost p9 at step ≈ 22,000 and p10 at step
+# ≈ 26,400, both on 2026-11-28; docs/training-log.md.)
 PAPER_RUN ?= $(HOME)/colf-runs/paper
 PAPER_INIT ?= models/default.safetensors
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
@@ -456,7 +457,14 @@ PAPER_REACH := --set shadow_reach=3
 # on p8's snapshot three quarters of the slots' light-field evaluations lay beyond, where they
 # held weights averaging 7·10⁻⁴; a step takes 0.65–0.70 s instead of 1.0–1.2 (docs/speed.md).
 PAPER_SLOT_REACH := --set slot_reach=3
-PAPER_SETS := $(PAPER_DECODER) $(PAPER_HYPERNET) $(PAPER_PER_LAYER) $(PAPER_REACH) $(PAPER_SLOT_REACH)
+# The paper's 128-value slots, each of the bundled model's 64 values kept twice (src/model/grow.rs):
+# latents fitted to two Blender test scenes on p10's step-16,000 snapshot drew them at 30.25 dB,
+# and 31.30 with 64 more values reaching the hypernetworks through fixed random weights
+# (`examples/capacity_fit --wide-latents 64`, twentieth session): the latent's size held the
+# bound down.
+PAPER_SLOTS := --set slot_dim=128
+PAPER_SETS := $(PAPER_DECODER) $(PAPER_HYPERNET) $(PAPER_PER_LAYER) $(PAPER_REACH) $(PAPER_SLOT_REACH) \
+  $(PAPER_SLOTS)
 PAPER_LATE := --proposals --mask-weight 0 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
 PAPER_128 := $(PAPER_RUN)/data128
@@ -482,21 +490,21 @@ endef
 data-paper: build
 	$(paper_train_data)
 	$(paper_test_data)
-# p10: the paper's 60,000 steps at 128² (Adam 5e-5, a half cosine to 5e-6 from step 40,000);
+# p11: the paper's 60,000 steps at 128² (Adam 5e-5, a half cosine to 5e-6 from step 40,000);
 # scored at the end on 100 held-out 128² scenes of each look
-# ($(PAPER_RUN)/p10-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
+# ($(PAPER_RUN)/p11-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
 model-paper: build
 	$(paper_train_data)
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
-	  --out $(PAPER_RUN)/p10.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
+	  --out $(PAPER_RUN)/p11.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
 	  --final-lr 5e-6 --seed 83 \
-	  $(call resume_or_init,$(PAPER_RUN)/p10.safetensors,$(PAPER_INIT) $(PAPER_SETS))
-	$(RELEASE)/colf-train plot $(PAPER_RUN)/p10.safetensors.log.jsonl -o $(PAPER_RUN)/training.png
+	  $(call resume_or_init,$(PAPER_RUN)/p11.safetensors,$(PAPER_INIT) $(PAPER_SETS))
+	$(RELEASE)/colf-train plot $(PAPER_RUN)/p11.safetensors.log.jsonl -o $(PAPER_RUN)/training.png
 	$(paper_test_data)
-	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-analytic128.json)
-	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-analytic128-fast.json,--fast)
-	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-blender128.json)
-	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p10.safetensors,$(PAPER_RUN)/p10-blender128-fast.json,--fast)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-analytic128.json)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-analytic128-fast.json,--fast)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-blender128.json)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-blender128-fast.json,--fast)
 
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with one thread, its
@@ -513,8 +521,8 @@ resume:
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT, is make model-paper's p10 after 4,000 steps on clevr567 at 128² (its
-# p10.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
+# ROOM_INIT, is make model-paper's p11 after 4,000 steps on clevr567 at 128² (its
+# p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
 # each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
 # wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
 # model grown, the earlier start, must first learn its new units. Held-out: 16 validation scenes
@@ -524,7 +532,7 @@ resume:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
-ROOM_INIT ?= $(PAPER_RUN)/p10.step4000.safetensors
+ROOM_INIT ?= $(PAPER_RUN)/p11.step4000.safetensors
 ROOM_SETS := $(PAPER_SETS)
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
@@ -538,7 +546,7 @@ define room_model
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
 	  --size 128)
 	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
-	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to p10's step 4,000, or set ROOM_INIT" >&2; exit 1; }
+	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to p11's step 4,000, or set ROOM_INIT" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \

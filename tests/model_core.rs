@@ -412,6 +412,89 @@ fn a_model_grown_to_the_paper_decoders_shape_renders_the_same_and_trains_it_all(
 }
 
 #[test]
+fn wider_slots_keep_each_value_in_copies_and_compute_the_same() {
+    // slot_dim 8 → 16 (the `paper` preset's 128 from the bundled 64), with a shared hypernetwork
+    // hidden layer and with one per light-field layer.
+    for per_layer in [false, true] {
+        let cfg = Config {
+            hypernet_per_layer: per_layer,
+            ..tiny()
+        };
+        let (d, m) = (cfg.slot_dim, 2);
+        let small = Colf::init(&cfg, 3).unwrap();
+        let wide_cfg = cfg
+            .with_overrides(&[format!("slot_dim={}", m * d)])
+            .unwrap();
+        let wide = small.reconfigured(&wide_cfg, 4, "m").unwrap();
+        // The same image and the same initial noise in every copy: the same attention, slots
+        // held m times, the same light fields.
+        let s = cfg.encoder_size;
+        let images = Tensor::from_vec(test_image(s), (1, s, s, 3), &Device::Cpu)
+            .unwrap()
+            .permute((0, 3, 1, 2))
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let noise = seeded_normal(1.0, &[1, 4, d], 9);
+        let copied = Tensor::cat(&[&noise, &noise], 2).unwrap();
+        let slots = |colf: &Colf, noise: &Tensor| {
+            let model = colf.model();
+            let tokens = model.encoder.forward(&images).unwrap();
+            model
+                .slot_attention
+                .forward_with_noise(&tokens, noise)
+                .unwrap()
+        };
+        let (before, after) = (slots(&small, &noise), slots(&wide, &copied));
+        let gap = relative_gap(&before.log_attention, &after.log_attention);
+        assert!(gap < 1e-5, "attention changed: {gap}");
+        for (old, new) in [(&before.fg, &after.fg), (&before.bg, &after.bg)] {
+            let last = old.rank() - 1;
+            let held_twice = Tensor::cat(&[old, old], last).unwrap();
+            let gap = relative_gap(&held_twice, new);
+            assert!(gap < 1e-5, "slots changed: {gap}");
+        }
+        let fields = |colf: &Colf, out: &colf::model::SlotOutput| {
+            colf.model().prepare(&out.fg, &out.bg).unwrap()
+        };
+        let (old_fields, new_fields) = (fields(&small, &before), fields(&wide, &after));
+        for (lb, la) in old_fields.layers.iter().zip(&new_fields.layers) {
+            for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
+                let gap = relative_gap(tb, ta);
+                assert!(gap < 1e-5, "light fields changed: {gap}");
+            }
+        }
+        // The hypernetworks read the copies with different weights that sum to the old ones,
+        // so the copies can move apart.
+        let fc1 = if per_layer {
+            "hypernet_fg.layers.0.fc1.weight"
+        } else {
+            "hypernet_fg.fc1.weight"
+        };
+        let (old_fc1, new_fc1) = (&small.parameters()[fc1], &wide.parameters()[fc1]);
+        let (first, second) = (
+            new_fc1.narrow(1, 0, d).unwrap(),
+            new_fc1.narrow(1, d, d).unwrap(),
+        );
+        assert!(relative_gap(&first, &second) > 0.05);
+        let gap = relative_gap(old_fc1, &(first + second).unwrap());
+        assert!(gap < 1e-5, "{gap}");
+        assert_gradients_reach_every_parameter(wide);
+    }
+    // Only whole multiples keep the slots' values.
+    let cfg = tiny();
+    let odd = cfg
+        .with_overrides(&[format!("slot_dim={}", cfg.slot_dim + 3)])
+        .unwrap();
+    let err = Colf::init(&cfg, 3)
+        .unwrap()
+        .reconfigured(&odd, 4, "m.safetensors")
+        .err()
+        .unwrap();
+    assert!(err.to_string().contains("whole multiple"), "{err}");
+}
+
+#[test]
 fn a_fixed_background_grows_into_one_that_reads_the_image() {
     let cfg = zero_background_tiny();
     let fixed = Colf::init(&cfg, 3).unwrap();
@@ -783,12 +866,12 @@ fn reconfigured_keeps_weights_and_refuses_shape_changes() {
         Colf::from_bytes(&bytes, "b").unwrap().identity().unwrap(),
         id
     );
-    // A wider slot latent changes what every hypernetwork reads: no growth keeps that.
-    let wider_slots = cfg
-        .with_overrides(&[format!("slot_dim={}", 2 * cfg.slot_dim)])
+    // Wider image tokens change what slot attention reads: no growth keeps that.
+    let wider_tokens = cfg
+        .with_overrides(&[format!("feature_dim={}", 2 * cfg.feature_dim)])
         .unwrap();
-    let Err(err) = a.reconfigured(&wider_slots, 0, "m.safetensors") else {
-        panic!("a wider slot latent was accepted");
+    let Err(err) = a.reconfigured(&wider_tokens, 0, "m.safetensors") else {
+        panic!("wider image tokens were accepted");
     };
     let err = err.to_string();
     assert!(err.starts_with("m.safetensors: "), "{err}");

@@ -191,7 +191,8 @@ pub struct RunArgs {
     /// `hypernet_hidden`, `lfn_hidden`, `lfn_features`, `head_hidden`, `head_hidden_layers`,
     /// `compositor_hidden` or `compositor_hidden_layers` — e.g. the small decoder grown to the
     /// paper's —, `--set hypernet_per_layer=true` for a hidden layer per light-field layer in
-    /// each hypernetwork, `--set zero_background=false` for a background that reads the image; new
+    /// each hypernetwork, a `slot_dim` a whole multiple of the old (each slot value kept that
+    /// many times), `--set zero_background=false` for a background that reads the image; new
     /// weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,

@@ -29,6 +29,18 @@
 //!   `compositor_hidden`, `compositor_hidden_layers`): new hidden units as above, new hidden
 //!   layers inserted before the output layer as the identity on the old units (exact after a
 //!   ReLU); see [`MlpGrowth`];
+//! - a wider `slot_dim` (a whole multiple m of the old): every slot value is kept m times. What
+//!   writes a slot value (the key, value and query projections' rows, μ, log σ, the layer
+//!   norms, the GRU's and MLP's output rows, the background reader) is copied for each copy; what
+//!   reads the slot (the GRU's and MLP's input columns, the query projection's, the
+//!   hypernetworks' `fc1`) splits each old weight over the copies, so the same slots give the
+//!   same keys, gates, queries and light fields; the query rows are scaled by 1/√m for the
+//!   attention's 1/√D. Exact given the same initial noise in every copy (the drawn noise differs
+//!   between copies: each slot starts from the mean of m draws, then the copies converge as the
+//!   GRU updates them). The hypernetworks split their weights unevenly, by a seeded amount that
+//!   sums to zero over the copies: copies that hold the same value give the same fields, but
+//!   receive different gradients, so training and the encoding's refinement can move them apart
+//!   (an even split would keep them equal forever);
 //! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
 //!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
 //!   growth that changes renders, by that much; see `heads.rs`).
@@ -128,6 +140,22 @@ fn grow_rest(
         bail!("{name}: a model's shadow head cannot be removed");
     }
     insert_fresh(&mut out, cfg, seed, &gained)?;
+    if cfg.slot_dim != old.slot_dim {
+        if cfg.slot_dim < old.slot_dim || !cfg.slot_dim.is_multiple_of(old.slot_dim) {
+            bail!(
+                "{name}: `slot_dim` grows only to a whole multiple of {} (asked: {})",
+                old.slot_dim,
+                cfg.slot_dim
+            );
+        }
+        SlotGrowth {
+            old: old.slot_dim,
+            new: cfg.slot_dim,
+            seed,
+        }
+        .apply(&mut out)
+        .with_context(|| format!("{name}: growing `slot_dim`"))?;
+    }
     for (key, from, to) in [
         ("hypernet_hidden", old.hypernet_hidden, cfg.hypernet_hidden),
         ("lfn_hidden", old.lfn_hidden, cfg.lfn_hidden),
@@ -219,6 +247,116 @@ fn grow_rest(
         }
     }
     Ok(out)
+}
+
+/// Growing `slot_dim` from `old` to `new` = m·`old` values by keeping each value m times (see
+/// the module's notes): value j of the grown slot is a copy of old value j mod `old`.
+struct SlotGrowth {
+    old: usize,
+    new: usize,
+    seed: u64,
+}
+
+impl SlotGrowth {
+    /// How many copies each old value gets.
+    fn copies(&self) -> usize {
+        self.new / self.old
+    }
+
+    /// For each grown index of `blocks` stacked blocks of slot values (the GRU's three gates
+    /// are three), the old index it copies.
+    fn sources(&self, blocks: usize) -> Result<Tensor> {
+        let index: Vec<u32> = (0..blocks * self.new)
+            .map(|j| ((j / self.new) * self.old + (j % self.new) % self.old) as u32)
+            .collect();
+        Ok(Tensor::from_vec(index, blocks * self.new, &Device::Cpu)?)
+    }
+
+    /// A tensor whose dimension `dim` holds `blocks` blocks of slot values, each value copied.
+    fn copy_values(&self, t: &Tensor, dim: usize, blocks: usize) -> Result<Tensor> {
+        Ok(t.index_select(&self.sources(blocks)?, dim)?.contiguous()?)
+    }
+
+    /// A weight [out, slot] that reads a slot, each old column split evenly over its copies.
+    fn split_columns(&self, t: &Tensor) -> Result<Tensor> {
+        Ok((self.copy_values(t, 1, 1)? / self.copies() as f64)?)
+    }
+
+    /// As [`SlotGrowth::split_columns`], plus a seeded perturbation that sums to zero over
+    /// each value's copies: N(0, (rms/m)²) draws less their mean over the copies, where rms is
+    /// the old weight's.
+    fn split_columns_unevenly(&self, t: &Tensor, name: &str) -> Result<Tensor> {
+        let m = self.copies();
+        let even = self.split_columns(t)?;
+        let rows = t.dim(0)?;
+        let drawn = (fresh_like(t, &[rows, m, self.old], self.seed, name)? / m as f64)?;
+        let centred = drawn.broadcast_sub(&drawn.mean_keepdim(1)?)?;
+        Ok((even + centred.reshape((rows, self.new))?)?.contiguous()?)
+    }
+
+    fn apply(&self, tensors: &mut BTreeMap<String, Tensor>) -> Result<()> {
+        let mut update = |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| -> Result<()> {
+            if let Some(t) = tensors.get(key) {
+                let grown = f(t)?;
+                tensors.insert(key.to_string(), grown);
+            }
+            Ok(())
+        };
+        // The projections from the image's tokens into slot space, and the background
+        // reader's (a background slot read from the tokens).
+        for key in [
+            "slot_attention.to_k.weight",
+            "slot_attention.to_v.weight",
+            "background_reader.proj.weight",
+            "background_reader.proj.bias",
+        ] {
+            update(key, &|t| self.copy_values(t, 0, 1))?;
+        }
+        let query_scale = 1.0 / (self.copies() as f64).sqrt();
+        for branch in ["bg", "fg"] {
+            let key = |part: &str| format!("slot_attention.{branch}.{part}");
+            for part in [
+                "mu",
+                "log_sigma",
+                "norm_slot.weight",
+                "norm_slot.bias",
+                "norm_mlp.weight",
+                "norm_mlp.bias",
+                "mlp.layers.1.weight",
+                "mlp.layers.1.bias",
+            ] {
+                update(&key(part), &|t| self.copy_values(t, 0, 1))?;
+            }
+            update(&key("to_q.weight"), &|t| {
+                Ok((self.split_columns(&self.copy_values(t, 0, 1)?)? * query_scale)?)
+            })?;
+            update(&key("mlp.layers.0.weight"), &|t| self.split_columns(t))?;
+            // The GRU: three gates (r, z, n) of slot-sized rows; it reads the update and the
+            // slot (both slot-sized) and writes the slot.
+            for part in ["gru.weight_ih_l0", "gru.weight_hh_l0"] {
+                update(&key(part), &|t| {
+                    self.split_columns(&self.copy_values(t, 0, 3)?)
+                })?;
+            }
+            for part in ["gru.bias_ih_l0", "gru.bias_hh_l0"] {
+                update(&key(part), &|t| self.copy_values(t, 0, 3))?;
+            }
+        }
+        // The hypernetworks read the latent: their shared hidden layer or each layer's own.
+        let readers: Vec<String> = tensors
+            .keys()
+            .filter(|k| {
+                (k.starts_with("hypernet_fg.") || k.starts_with("hypernet_bg."))
+                    && k.ends_with("fc1.weight")
+            })
+            .cloned()
+            .collect();
+        for key in readers {
+            let grown = self.split_columns_unevenly(&tensors[&key], &key)?;
+            tensors.insert(key, grown);
+        }
+        Ok(())
+    }
 }
 
 /// `{key}` [rows, C] widened to `columns` with zero columns: new inputs have no effect yet.
