@@ -248,6 +248,13 @@ pub struct FitArgs {
     #[arg(long, value_name = "N")]
     pub agreed_slots: Option<usize>,
 
+    /// With three input views or more: before each later view's slots are matched with those
+    /// kept so far, refine the kept slots N steps on the views already taken, so that they sit
+    /// where those views agree rather than at one view's guess of their depth (0: none; default:
+    /// the one-view refinement's steps, 0 with --fast; docs/eval.md).
+    #[arg(long, value_name = "N")]
+    pub triangulate: Option<usize>,
+
     /// Pull toward the encoder's latents during refinement: W * mean((z - z0)^2).
     #[arg(long, default_value_t = crate::encode::refine::RefineOptions::default().anchor_weight, value_name = "W", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_anchor: f64,
@@ -349,6 +356,17 @@ impl FitArgs {
         })
     }
 
+    /// Steps of the triangulation before each later view's slots are matched: --triangulate,
+    /// else the one-view encoding's refinement steps (none with --fast, which refines nothing).
+    pub fn triangulate_steps(
+        &self,
+        model_config: &crate::model::Config,
+        slots: Option<usize>,
+    ) -> usize {
+        self.triangulate
+            .unwrap_or_else(|| self.encoding(model_config, slots).refine)
+    }
+
     /// The encoding these flags ask for with `model_config`, `slots` (the stage's --slots) and
     /// slot-noise `seed` (no camera or source: the stage sets them per image).
     pub fn encode_options(
@@ -377,6 +395,7 @@ impl FitArgs {
             refine: self.options(&encoding, seed),
             redundant_mse: self.redundant_mse(),
             agreed_slots: self.agreed_slots(),
+            triangulate_steps: self.triangulate_steps(model_config, slots),
             ..crate::encode::EncodeOptions::one_pass(encoding.slots)
         }
     }
@@ -440,6 +459,18 @@ mod tests {
         assert_eq!(for_views(&[], 3), 50 * MULTI_VIEW_REFINE_FACTOR);
         assert_eq!(for_views(&["--refine", "30"], 3), 30);
         assert_eq!(for_views(&["--fast"], 3), 0);
+        // The kept slots are triangulated for as long as one view is refined.
+        let triangulate = |flags: &[&str]| {
+            let args =
+                EncodeArgs::try_parse_from([&["colf-encode", "x.png"], flags].concat()).unwrap();
+            args.fit
+                .encode_options_for_views(&tuned, args.slots, 0, 3)
+                .triangulate_steps
+        };
+        assert_eq!(triangulate(&[]), 50);
+        assert_eq!(triangulate(&["--refine", "30"]), 30);
+        assert_eq!(triangulate(&["--triangulate", "7"]), 7);
+        assert_eq!(triangulate(&["--fast"]), 0);
     }
 
     #[test]

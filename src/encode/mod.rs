@@ -58,6 +58,10 @@ pub struct EncodeOptions {
     /// With several views: at most this many slots added where the views agree on an object
     /// no slot draws ([`residual::add_agreed_slots`]; 0: none). Not read for one view.
     pub agreed_slots: usize,
+    /// With three views or more: before each later view's slots are matched, the slots kept so
+    /// far are refined this many steps on the views already taken (0: none; see
+    /// [`multiview::encode_views`]). Not read for one or two views.
+    pub triangulate_steps: usize,
 }
 
 impl EncodeOptions {
@@ -74,6 +78,7 @@ impl EncodeOptions {
             refine: RefineOptions::default(),
             redundant_mse: 0.0,
             agreed_slots: 0,
+            triangulate_steps: 0,
         }
     }
 
@@ -280,6 +285,7 @@ mod tests {
             refine: RefineOptions::default(),
             redundant_mse: 0.0,
             agreed_slots: 0,
+            triangulate_steps: 0,
         }
     }
 

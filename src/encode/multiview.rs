@@ -9,7 +9,10 @@
 //! both draw, at least [`MATCH_IOU`]) are one object, and so is a newcomer lying mostly inside
 //! one kept slot (a piece of an object its view split); the slot already kept stays and the
 //! newcomer goes, unless the newcomer draws in more of the views (see [`Matching`]). A slot
-//! no earlier slot matches is an object only this view saw, and joins. The background is the
+//! no earlier slot matches is an object only this view saw, and joins. With
+//! `triangulate_steps`, from the third view on the slots kept so far are first refined on the
+//! views already taken: each was placed at one view's guess of its depth, and the views
+//! together move it to where they agree before the next view's slots are compared with it. The background is the
 //! first view's. Then the default encoding's refinement runs on all views at once (its rays
 //! per step are per view: V views, V times the pixels a step). With `agreed_slots`, what the
 //! views then agree the slots still miss gets new slots, refined again with the rest
@@ -63,6 +66,9 @@ pub struct MultiViewReport {
     pub matched: usize,
     /// Slots added where the views agreed on an object no slot drew (before the last drop).
     pub agreed: usize,
+    /// Refinement steps taken to triangulate the kept slots before matching
+    /// ([`EncodeOptions::triangulate_steps`]).
+    pub triangulated: usize,
     /// The joint refinement, if it ran.
     pub refine: Option<RefineReport>,
 }
@@ -89,6 +95,7 @@ pub fn encode_views(
                 proposed: vec![codes.slots.len()],
                 matched: 0,
                 agreed: 0,
+                triangulated: 0,
                 refine,
             };
             return Ok((codes, report));
@@ -110,11 +117,27 @@ pub fn encode_views(
         report.proposed.push(slots.len());
         proposals.push((slots, background));
     }
+    // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
+    let joint = |steps: usize, views: usize| refine::RefineOptions {
+        steps,
+        rays: opts.refine.rays.saturating_mul(views),
+        ..opts.refine
+    };
     // 2. One slot per object: later views' slots matched against those kept so far.
     let mut proposals = proposals.into_iter();
     let (mut slots, mut background) = proposals.next().expect("two views or more");
     for (i, (newcomers, newcomers_background)) in proposals.enumerate() {
         let seen = &views[..i + 2];
+        if opts.triangulate_steps > 0 && i > 0 {
+            // Triangulation: the kept slots came from two views or more, each placed at its
+            // own view's guess of the depth; refined on those views together, they move to
+            // where the views agree, so the newcomers are matched against slots drawn from
+            // the right place.
+            let taken: Vec<&InputView> = views[..i + 1].iter().collect();
+            let steps = joint(opts.triangulate_steps, taken.len());
+            report.triangulated +=
+                refine::refine_slots(model, &mut slots, &mut background, &taken, &steps)?.steps;
+        }
         let matched = match_slots(
             model,
             (&slots, &background),
@@ -136,19 +159,13 @@ pub fn encode_views(
     }
     // 3. All views at once: refinement.
     let all: Vec<&InputView> = views.iter().collect();
-    // `rays` is per view: each view gets the pixels a step of its own encoding gives it.
-    let joint = |steps: usize| refine::RefineOptions {
-        steps,
-        rays: opts.refine.rays.saturating_mul(views.len()),
-        ..opts.refine
-    };
     if opts.refine.steps > 0 {
         report.refine = Some(refine::refine_slots(
             model,
             &mut slots,
             &mut background,
             &all,
-            &joint(opts.refine.steps),
+            &joint(opts.refine.steps, all.len()),
         )?);
     }
     // 4. What the views agree on and no slot draws: new slots, then all refined again.
@@ -163,7 +180,7 @@ pub fn encode_views(
         )?;
         report.agreed = added;
         if added > 0 && opts.refine.steps > 0 {
-            let steps = joint(opts.refine.steps.div_ceil(2));
+            let steps = joint(opts.refine.steps.div_ceil(2), all.len());
             refine::refine_slots(model, &mut slots, &mut background, &all, &steps)?;
         }
         slots = super::residual::keep_agreed(model, slots, &background, &all, first_added)?;
@@ -517,5 +534,41 @@ mod tests {
         // Same inputs, same bytes.
         let (again, _) = encode_views(&model, &[input("a"), input("b")], &options()).unwrap();
         assert_eq!(codes, again);
+    }
+
+    #[test]
+    fn triangulation_refines_the_kept_slots_from_the_third_view_on() {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let images: Vec<RgbImage32> = (0..3).map(|v| image(16, 7 * v)).collect();
+        let inputs: Vec<ViewInput> = images
+            .iter()
+            .enumerate()
+            .map(|(v, img)| ViewInput {
+                image: img,
+                camera: camera(16, 2.0 * v as f64 - 2.0),
+                source: format!("v{v}"),
+            })
+            .collect();
+        let triangulated = EncodeOptions {
+            triangulate_steps: 3,
+            ..options()
+        };
+        // Two views: nothing to triangulate before matching, the same bytes as without.
+        let (two, report) = encode_views(&model, &inputs[..2], &triangulated).unwrap();
+        assert_eq!(report.triangulated, 0);
+        assert_eq!(
+            two,
+            encode_views(&model, &inputs[..2], &options()).unwrap().0
+        );
+        // Three: the first two views' slots are refined before the third's are matched.
+        let (three, report) = encode_views(&model, &inputs, &triangulated).unwrap();
+        assert_eq!(report.triangulated, 3);
+        let (plain, plain_report) = encode_views(&model, &inputs, &options()).unwrap();
+        assert_eq!(plain_report.triangulated, 0);
+        assert_ne!(three, plain);
+        assert_eq!(
+            three,
+            encode_views(&model, &inputs, &triangulated).unwrap().0
+        );
     }
 }
