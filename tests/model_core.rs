@@ -400,15 +400,20 @@ fn a_model_grown_to_the_paper_decoders_shape_renders_the_same_and_trains_it_all(
         .unwrap();
     assert!(abs_sum(&reads_new_features) > 0.0);
     // Shrinking is refused, naming the file.
-    let shallower = grown_cfg
-        .with_overrides(&["head_hidden_layers=2".into()])
-        .unwrap();
-    let err = Colf::init(&grown_cfg, 1)
+    let err = refused_growth(&grown_cfg, "head_hidden_layers=2");
+    assert!(err.starts_with("m.safetensors: "), "{err}");
+}
+
+/// The error of growing a fresh `cfg` model (file name `m.safetensors`) with `setting`.
+fn refused_growth(cfg: &Config, setting: &str) -> String {
+    let to = cfg.with_overrides(&[setting.to_string()]).unwrap();
+    let Err(err) = Colf::init(cfg, 1)
         .unwrap()
-        .reconfigured(&shallower, 4, "m.safetensors")
-        .err()
-        .unwrap();
-    assert!(err.to_string().starts_with("m.safetensors: "), "{err}");
+        .reconfigured(&to, 4, "m.safetensors")
+    else {
+        panic!("`{setting}` was accepted");
+    };
+    err.to_string()
 }
 
 #[test]
@@ -483,15 +488,8 @@ fn wider_slots_keep_each_value_in_copies_and_compute_the_same() {
     }
     // Only whole multiples keep the slots' values.
     let cfg = tiny();
-    let odd = cfg
-        .with_overrides(&[format!("slot_dim={}", cfg.slot_dim + 3)])
-        .unwrap();
-    let err = Colf::init(&cfg, 3)
-        .unwrap()
-        .reconfigured(&odd, 4, "m.safetensors")
-        .err()
-        .unwrap();
-    assert!(err.to_string().contains("whole multiple"), "{err}");
+    let err = refused_growth(&cfg, &format!("slot_dim={}", cfg.slot_dim + 3));
+    assert!(err.contains("whole multiple"), "{err}");
 }
 
 #[test]
