@@ -42,7 +42,9 @@ when speed matters more.\n\n\
 Several images of one scene (IMAGE... with --camera, image i seen by --frame's i-th frame, \
 by default frame i) are encoded into one scene: each view is encoded as above (tries, and the \
 slots its own view does not need dropped), then slots of different views that draw the same \
-object are matched into one — each view's slots are rendered into the views before it, and two \
+object are matched into one — from the third view on, the slots kept so far are first refined \
+on the views before it (--triangulate steps), so that they sit where those views agree; each view's \
+slots are rendered into the views before it, and two \
 slots whose label maps overlap (intersection over union at least 0.2 over those views) are one \
 object, as is a slot whose pixels lie mostly (60 %) inside one earlier slot's in every view (a \
 piece of an object a view split); the earlier view's slot stays — so an object seen in several views gets one slot and \
