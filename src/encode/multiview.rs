@@ -16,7 +16,8 @@
 //! first view's. Then the default encoding's refinement runs on all views at once (its rays
 //! per step are per view: V views, V times the pixels a step). With `agreed_slots`, what the
 //! views then agree the slots still miss gets new slots, refined again with the rest
-//! ([`super::residual`]). Last, the slots no view needs are dropped (the redundancy budget on
+//! ([`super::residual`]), the step undone if the input views are then drawn worse (an added
+//! slot can pull the refinement off them). Last, the slots no view needs are dropped (the redundancy budget on
 //! the mean error over the views).
 //!
 //! Matching by what the slots draw, not by where their frames sit: a slot's frame origin is
@@ -66,6 +67,9 @@ pub struct MultiViewReport {
     pub matched: usize,
     /// Slots added where the views agreed on an object no slot drew (before the last drop).
     pub agreed: usize,
+    /// Whether the slots were put back as they were before the agreed ones were added, the
+    /// refinement that followed having drawn the input views worse.
+    pub agreed_undone: bool,
     /// Refinement steps taken to triangulate the kept slots before matching
     /// ([`EncodeOptions::triangulate_steps`]).
     pub triangulated: usize,
@@ -95,6 +99,7 @@ pub fn encode_views(
                 proposed: vec![codes.slots.len()],
                 matched: 0,
                 agreed: 0,
+                agreed_undone: false,
                 triangulated: 0,
                 refine,
             };
@@ -170,6 +175,7 @@ pub fn encode_views(
     }
     // 4. What the views agree on and no slot draws: new slots, then all refined again.
     if opts.agreed_slots > 0 {
+        let before = (slots.clone(), background.clone());
         let first_added = slots.len();
         let added = super::residual::add_agreed_slots(
             model,
@@ -184,6 +190,13 @@ pub fn encode_views(
             refine::refine_slots(model, &mut slots, &mut background, &all, &steps)?;
         }
         slots = super::residual::keep_agreed(model, slots, &background, &all, first_added)?;
+        // The added slots start from another slot's latent and can pull the refinement off
+        // the views (a slot that drew an object gives it up, and the drop below removes it):
+        // the slots after this step stay only if they draw the input views no worse.
+        if added > 0 {
+            ((slots, background), report.agreed_undone) =
+                no_worse_than(model, (slots, background), before, &all)?;
+        }
     }
     // 5. The slots no view needs dropped.
     let slots = drop_redundant_slots(model, slots, &background, &all, opts.redundant_mse, None)?;
@@ -193,6 +206,42 @@ pub fn encode_views(
         model: model.identity()?,
     };
     Ok((codes, report))
+}
+
+/// A scene's slots and background, as an encoding holds them before writing its codes.
+type SlotSet = (Vec<Slot>, Vec<f32>);
+
+/// `candidate` (slots and background) unless it draws `views` worse than `before` (the mean
+/// squared error of [`views_mse`]), then `before`; and whether `before` was taken.
+fn no_worse_than(
+    model: &Colf,
+    candidate: SlotSet,
+    before: SlotSet,
+    views: &[&InputView],
+) -> Result<(SlotSet, bool)> {
+    let worse = views_mse(model, &candidate.0, &candidate.1, views)?
+        > views_mse(model, &before.0, &before.1, views)?;
+    Ok(if worse {
+        (before, true)
+    } else {
+        (candidate, false)
+    })
+}
+
+/// The mean over `views` of the squared colour error of `slots` and `background` on each
+/// view's compared pixels.
+fn views_mse(
+    model: &Colf,
+    slots: &[Slot],
+    background: &[f32],
+    views: &[&InputView],
+) -> Result<f64> {
+    let (latents, frames) = latents_and_frames(slots);
+    let mut total = 0.0;
+    for view in views {
+        total += view.mse(model, &latents, background, &frames, None)?;
+    }
+    Ok(total / views.len().max(1) as f64)
 }
 
 /// How the newcomers of one view matched the slots kept so far.
@@ -534,6 +583,49 @@ mod tests {
         // Same inputs, same bytes.
         let (again, _) = encode_views(&model, &[input("a"), input("b")], &options()).unwrap();
         assert_eq!(codes, again);
+    }
+
+    /// The guard after the agreed slots: slots that draw the views worse than those before
+    /// them are undone, slots that draw them as well are kept.
+    #[test]
+    fn slots_that_draw_the_views_worse_are_undone() {
+        let model = Colf::init(&Config::small(), 1).unwrap();
+        let cam = camera(16, 0.0);
+        let img = image(16, 0);
+        let (slots, background) =
+            super::super::encode_once(&model, &InputView::new(&cam, &img), &options(), 3).unwrap();
+        // A view these slots draw exactly: their own render.
+        let codes = Codes {
+            slots: slots.clone(),
+            background: background.clone(),
+            model: model.identity().unwrap(),
+        };
+        let scene = crate::render::PreparedScene::new(&model, &codes, "test").unwrap();
+        let render = scene.render_frame(&model, &cam).unwrap();
+        let drawn = RgbImage32 {
+            w: 16,
+            h: 16,
+            data: render.rgb,
+        };
+        let view = InputView::new(&cam, &drawn);
+        let before = (slots.clone(), background.clone());
+        let mut moved = slots.clone();
+        for slot in &mut moved {
+            slot.latent.iter_mut().for_each(|v| *v += 1.0);
+        }
+        let (kept, undone) = no_worse_than(
+            &model,
+            (moved, background.clone()),
+            before.clone(),
+            &[&view],
+        )
+        .unwrap();
+        assert!(undone);
+        assert_eq!(kept, before);
+        let (kept, undone) =
+            no_worse_than(&model, before.clone(), (Vec::new(), background), &[&view]).unwrap();
+        assert!(!undone, "the slots' own render is drawn worse without them");
+        assert_eq!(kept, before);
     }
 
     #[test]
