@@ -116,6 +116,8 @@ fn slots_where_the_views_agree_are_deterministic_and_off_with_fast() {
         );
     }
     encode(&["--agreed-slots", "0"], "none.codes");
+    // The default adds up to three.
+    assert_eq!(agreed, encode(&[], "default.codes"));
     // --fast: one pass, nothing added, whatever the default.
     let fast = |extra: &[&str], out: &str| {
         let out = dir.path().join(out);

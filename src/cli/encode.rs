@@ -50,8 +50,11 @@ object, as is a slot whose pixels lie mostly (60 %) inside one earlier slot's in
 piece of an object a view split); the earlier view's slot stays — so an object seen in several views gets one slot and \
 an object only one view sees keeps its own; the background is the first view's. The kept slots \
 are then refined on all views at once (--refine-rays is per view; unless --refine says \
-otherwise, twice the model's default steps) and the slots no view needs dropped (--redundant on the mean error over the views). Each slot's source names the image it \
-came from. One image gives exactly the codes it always did.\n\n\
+otherwise, twice the model's default steps); up to three slots are then added where the views \
+agree on something no slot draws, refined with the rest and kept only where two views need them \
+(--agreed-slots; the step is undone if it draws the views worse), and the slots no view needs \
+dropped (--redundant on the mean error over the views). Each slot's source names the image it \
+came from (`agreed#N` for an added slot). One image gives exactly the codes it always did.\n\n\
 The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \

@@ -244,7 +244,7 @@ pub struct FitArgs {
     /// With several input views: up to N slots added where the views agree on something the
     /// refined slots do not draw (blobs of the renders' residual whose centre rays meet), then
     /// all refined again and dropped unless needed, and the whole step undone if the views are
-    /// then drawn worse (0: none; default: 0 with --fast, else the default's; docs/eval.md).
+    /// then drawn worse (0: none; default: 3, 0 with --fast; docs/eval.md).
     #[arg(long, value_name = "N")]
     pub agreed_slots: Option<usize>,
 

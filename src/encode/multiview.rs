@@ -17,8 +17,8 @@
 //! per step are per view: V views, V times the pixels a step). With `agreed_slots`, what the
 //! views then agree the slots still miss gets new slots, refined again with the rest
 //! ([`super::residual`]), the step undone if the input views are then drawn worse (an added
-//! slot can pull the refinement off them). Last, the slots no view needs are dropped (the redundancy budget on
-//! the mean error over the views).
+//! slot can pull the refinement off them). Last, the slots no view needs are dropped (the
+//! redundancy budget on the mean error over the views).
 //!
 //! Matching by what the slots draw, not by where their frames sit: a slot's frame origin is
 //! only a guess of the object's position along its ray (`model::frames`), while its rendered
