@@ -237,9 +237,12 @@ fn views_mse(
     views: &[&InputView],
 ) -> Result<f64> {
     let (latents, frames) = latents_and_frames(slots);
+    // The hypernetworks run once for all views.
+    let prepared = model.prepare(&latents, background)?;
+    let renderer = FastRenderer::new(model, &prepared, &frames)?;
     let mut total = 0.0;
     for view in views {
-        total += view.mse(model, &latents, background, &frames, None)?;
+        total += view.mse_by(&renderer)?;
     }
     Ok(total / views.len().max(1) as f64)
 }

@@ -92,6 +92,11 @@ impl<'a> InputView<'a> {
     ) -> Result<f64> {
         let prepared = model.prepare(fg_latents, bg_latent)?;
         let renderer = FastRenderer::new(model, &prepared, slot_to_world)?.within_reaches(reached);
+        self.mse_by(&renderer)
+    }
+
+    /// [`InputView::mse`] with slots already prepared: one renderer serves every view.
+    pub fn mse_by(&self, renderer: &FastRenderer) -> Result<f64> {
         let out = renderer.render(&self.compared.origins, &self.compared.dirs, None, None)?;
         Ok(self.compared.mse(&out.rgb))
     }
