@@ -530,7 +530,7 @@ resume:
 # $(ROOM_DATA)/PRESET/data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the work tree;
 # re-running resumes. The 64² stage is 32,000 steps, not the paper's 128,000: the encoder reads
 # 64² in both stages, so 64² steps differ only in their blurred ray targets, and rp6's 64²
-# validation PSNR was level (23.1–23.4 dB) from step 6,000 to 16,000 (docs/training-log.md,
+# validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000 (docs/training-log.md,
 # twenty-third session); the steps go to 128², where the targets are scored. Run with one thread
 # beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
