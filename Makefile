@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default data-paper model-paper resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default data-paper model-paper model-paper-wide resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -506,12 +506,37 @@ model-paper: build
 	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-blender128.json)
 	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p11.safetensors,$(PAPER_RUN)/p11-blender128-fast.json,--fast)
 
+# p12: p11 at step 36,000 with 384-value slots, the 256 new values fresh (`--slot-values fresh`,
+# src/model/grow.rs: they start at zero and the hypernetworks read them with fresh weights), then
+# the rest of p11's schedule (24,000 steps, the half cosine from p11's step 40,000). Latents
+# fitted on p11 stayed at 29.7–30.1 dB from step 12,000 to 28,000, and 256 fresh values fitted
+# with them lifted that by 1.25 dB on a frozen decoder (`examples/capacity_fit --wide-latents
+# 256`, twenty-third session): 384 values can set each of the three hypernetwork hidden layers'
+# 128 units, whose free fit reached 33.2–34.1 dB. Scored as p11 at the end.
+P12_INIT ?= $(PAPER_RUN)/p11.step36000.safetensors
+P12_SETS := --set slot_dim=384 --slot-values fresh
+model-paper-wide: build
+	$(paper_train_data)
+	test -f $(PAPER_RUN)/p12.safetensors.ckpt || test -f $(P12_INIT) || \
+	  { echo "model-paper-wide: no initial model at $(P12_INIT): run make model-paper to p11's step 36,000, or set P12_INIT" >&2; exit 1; }
+	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
+	  --out $(PAPER_RUN)/p12.safetensors --steps 24000 --lr 5e-5 --warmup 200 --decay-from 4000 \
+	  --final-lr 5e-6 --seed 84 \
+	  $(call resume_or_init,$(PAPER_RUN)/p12.safetensors,$(P12_INIT) $(P12_SETS))
+	$(RELEASE)/colf-train plot $(PAPER_RUN)/p12.safetensors.log.jsonl -o $(PAPER_RUN)/training-p12.png
+	$(paper_test_data)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p12.safetensors,$(PAPER_RUN)/p12-analytic128.json)
+	$(call eval_json,$(PAPER_128)/test-analytic,$(PAPER_RUN)/p12.safetensors,$(PAPER_RUN)/p12-analytic128-fast.json,--fast)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p12.safetensors,$(PAPER_RUN)/p12-blender128.json)
+	$(call eval_json,$(PAPER_128)/test-blender,$(PAPER_RUN)/p12.safetensors,$(PAPER_RUN)/p12-blender128-fast.json,--fast)
+
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with one thread, its
 # output appended to its log. Run it at the start of every session. RESUME_RUNS lists them, one
 # a core: the paper-sized decoder and the room-chair run (the city waits for a change of its
 # recipe; docs/training-log.md says how the cores are split).
-RESUME_RUNS ?= model-paper:$(PAPER_RUN)/make.log model-room-chair:$(ROOM_RUN)/room-chair.log
+RESUME_RUNS ?= model-paper:$(PAPER_RUN)/make.log model-paper-wide:$(PAPER_RUN)/p12.log \
+  model-room-chair:$(ROOM_RUN)/room-chair.log
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 

@@ -2,6 +2,7 @@
 //! different frames composite front to back, checkpoints are reproducible and validated.
 
 use candle_core::{DType, Device, Tensor};
+use colf::model::grow::{Growth, SlotValues};
 use colf::model::{Colf, Config, RayBatch, SceneRays};
 use glam::{DMat4, DVec3};
 use proptest::prelude::*;
@@ -489,7 +490,115 @@ fn wider_slots_keep_each_value_in_copies_and_compute_the_same() {
     // Only whole multiples keep the slots' values.
     let cfg = tiny();
     let err = refused_growth(&cfg, &format!("slot_dim={}", cfg.slot_dim + 3));
-    assert!(err.contains("whole multiple"), "{err}");
+    assert!(
+        err.contains("whole multiple") && err.contains("fresh"),
+        "{err}"
+    );
+}
+
+#[test]
+fn wider_slots_with_fresh_values_draw_the_same_fields_and_read_the_new_values() {
+    // slot_dim 8 → 20 (not a multiple: fresh values grow to any width), with and without the
+    // hypernetworks' RMS norm, a shared hidden layer and one per light-field layer, and a
+    // background reader (whose new latent values start at zero too).
+    let fresh = |seed| Growth {
+        seed,
+        slot_values: SlotValues::Fresh,
+    };
+    for (per_layer, rms_norm, reader) in [
+        (false, true, false),
+        (true, true, true),
+        (true, false, false),
+    ] {
+        let cfg = Config {
+            hypernet_per_layer: per_layer,
+            hypernet_rms_norm: rms_norm,
+            background_reader: reader,
+            ..tiny()
+        };
+        let (d, wide_d) = (cfg.slot_dim, 20);
+        let small = Colf::init(&cfg, 3).unwrap();
+        let wide_cfg = cfg.with_overrides(&[format!("slot_dim={wide_d}")]).unwrap();
+        let wide = small.grown(&wide_cfg, fresh(4), "m").unwrap();
+        // Given latents, the new values zero: the same light fields.
+        let fg = seeded_normal(1.0, &[1, 3, d], 5);
+        let bg = seeded_normal(1.0, &[1, d], 6);
+        let padded = |t: &Tensor| {
+            let mut shape = t.dims().to_vec();
+            *shape.last_mut().unwrap() = wide_d - d;
+            let zeros = Tensor::zeros(shape, DType::F32, &Device::Cpu).unwrap();
+            Tensor::cat(&[t, &zeros], t.rank() - 1).unwrap()
+        };
+        let before = small.model().prepare(&fg, &bg).unwrap();
+        let after = wide.model().prepare(&padded(&fg), &padded(&bg)).unwrap();
+        for (lb, la) in before.layers.iter().zip(&after.layers) {
+            for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
+                let gap = relative_gap(tb, ta);
+                assert!(gap < 1e-4, "light fields changed: {gap}");
+            }
+        }
+        // The new values are read at once: a latent with only new values draws other fields.
+        let only_new = Tensor::cat(
+            &[
+                &Tensor::zeros((1, 3, d), DType::F32, &Device::Cpu).unwrap(),
+                &seeded_normal(1.0, &[1, 3, wide_d - d], 7),
+            ],
+            2,
+        )
+        .unwrap();
+        let moved = wide.model().prepare(&only_new, &padded(&bg)).unwrap();
+        let zero_fg = wide
+            .model()
+            .prepare(&padded(&(&fg * 0.0).unwrap()), &padded(&bg))
+            .unwrap();
+        assert!(relative_gap(&zero_fg.layers[0].weight, &moved.layers[0].weight) > 1e-2);
+        // Slot attention: the same image and noise give new values near zero, and attention
+        // near the old (not the same: the layer norms see the zeros, which is exact only for
+        // zero-mean slots, and this untrained model's have a mean of about 1.8).
+        let s = cfg.encoder_size;
+        let images = Tensor::from_vec(test_image(s), (1, s, s, 3), &Device::Cpu)
+            .unwrap()
+            .permute((0, 3, 1, 2))
+            .unwrap()
+            .contiguous()
+            .unwrap();
+        let noise = seeded_normal(1.0, &[1, 4, d], 9);
+        let slots = |colf: &Colf, noise: &Tensor| {
+            let model = colf.model();
+            let tokens = model.encoder.forward(&images).unwrap();
+            model
+                .slot_attention
+                .forward_with_noise(&tokens, noise)
+                .unwrap()
+        };
+        let wide_noise =
+            Tensor::cat(&[&noise, &seeded_normal(1.0, &[1, 4, wide_d - d], 8)], 2).unwrap();
+        let (before, after) = (slots(&small, &noise), slots(&wide, &wide_noise));
+        let gap = relative_gap(&before.log_attention, &after.log_attention);
+        assert!(gap < 0.25, "attention changed: {gap}");
+        let new_values = after.fg.narrow(2, d, wide_d - d).unwrap();
+        let share = abs_sum(&new_values) / abs_sum(&after.fg);
+        assert!(share < 1e-3, "new values start at {share} of the slots");
+        // The queries: the old block scaled by √(new/old) for the attention's 1/√D (the keys'
+        // new rows meet zero query rows), nothing else.
+        let key = "slot_attention.fg.to_q.weight";
+        let (old_q, new_q) = (&small.parameters()[key], &wide.parameters()[key]);
+        let kept = new_q.narrow(0, 0, d).unwrap().narrow(1, 0, d).unwrap();
+        let scaled = (old_q * (wide_d as f64 / d as f64).sqrt()).unwrap();
+        assert!(relative_gap(&scaled, &kept) < 1e-6);
+        assert_eq!(abs_sum(new_q) - abs_sum(&kept), 0.0);
+        assert_gradients_reach_every_parameter(wide);
+    }
+    // A narrower slot is refused either way.
+    let cfg = tiny();
+    let narrower = cfg.with_overrides(&["slot_dim=4".to_string()]).unwrap();
+    let Err(err) = Colf::init(&cfg, 1)
+        .unwrap()
+        .grown(&narrower, fresh(4), "m.safetensors")
+    else {
+        panic!("a narrower slot was accepted");
+    };
+    assert!(err.to_string().contains("not shrink"), "{err}");
 }
 
 #[test]

@@ -354,6 +354,47 @@ fn set_with_init_keeps_or_grows_weights_and_refuses_the_rest() {
         .parameters()
         .keys()
         .all(|k| !k.starts_with("hypernet_bg.")));
+    // Wider slots: by copies only to a whole multiple; fresh values to any width, recorded.
+    let old_dim = colf::model::Colf::load(&start).unwrap().config().slot_dim;
+    let wider_slots = format!("slot_dim={}", old_dim + 16);
+    let fresh = dir.path().join("fresh.safetensors");
+    let assert = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("--data")
+        .arg(&data)
+        .arg("--init")
+        .arg(&start)
+        .args(["--set", &wider_slots, "--steps", "1", "--out"])
+        .arg(&fresh)
+        .assert()
+        .code(1);
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(
+        stderr.contains("whole multiple") && stderr.contains("fresh values"),
+        "{stderr}"
+    );
+    assert!(!fresh.exists());
+    train(
+        &data,
+        &fresh,
+        1,
+        &[
+            "--init",
+            start.to_str().unwrap(),
+            "--set",
+            &wider_slots,
+            "--slot-values",
+            "fresh",
+        ],
+    );
+    let runs = info(&fresh)["training"].as_array().unwrap().clone();
+    assert_eq!(runs.last().unwrap()["slot_values"], "fresh", "{runs:?}");
+    assert!(runs[0].get("slot_values").is_none(), "{runs:?}");
+    assert_eq!(
+        colf::model::Colf::load(&fresh).unwrap().config().slot_dim,
+        old_dim + 16
+    );
 }
 
 /// `colf-train init --seed 3 -o path`: a fresh `small` model.

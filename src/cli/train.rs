@@ -1,5 +1,6 @@
 //! `colf-train`: make and train COLF models.
 
+use crate::model::grow::SlotValues;
 use clap::{Args, Parser, Subcommand};
 
 /// Make and train COLF models.
@@ -191,11 +192,17 @@ pub struct RunArgs {
     /// `hypernet_hidden`, `lfn_hidden`, `lfn_features`, `head_hidden`, `head_hidden_layers`,
     /// `compositor_hidden` or `compositor_hidden_layers` — e.g. the small decoder grown to the
     /// paper's —, `--set hypernet_per_layer=true` for a hidden layer per light-field layer in
-    /// each hypernetwork, a `slot_dim` a whole multiple of the old (each slot value kept that
-    /// many times), `--set zero_background=false` for a background that reads the image; new
+    /// each hypernetwork, a wider `slot_dim` (see --slot-values), `--set
+    /// zero_background=false` for a background that reads the image; new
     /// weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,
+
+    /// With --init and a wider `--set slot_dim=N`: keep each old value N/old times (`copies`,
+    /// N a whole multiple of the old) or add values of their own that start at zero and that
+    /// the hypernetworks read with fresh weights (`fresh`, any N; docs/model.md).
+    #[arg(long, value_enum, default_value_t = SlotValues::Copies, value_name = "HOW")]
+    pub slot_values: SlotValues,
 
     /// Seed of the data order, ray sampling, slot noise and (fresh models) initialisation.
     #[arg(long, default_value_t = 0, value_name = "S")]
@@ -650,6 +657,7 @@ impl RunArgs {
             mask_shadow_depth: args.mask_shadow_depth,
             zero_background: args.zero_background,
             config_overrides: args.config_overrides.clone(),
+            slot_values: args.slot_values,
             seed: args.seed,
             checkpoint_every: args.checkpoint_every,
             keep_every: args.keep_every,

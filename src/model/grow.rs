@@ -41,6 +41,19 @@
 //!   sums to zero over the copies: copies that hold the same value give the same fields, but
 //!   receive different gradients, so training and the encoding's refinement can move them apart
 //!   (an even split would keep them equal forever);
+//! - a wider `slot_dim` with fresh values ([`SlotValues::Fresh`], any width): the new values
+//!   start at zero and the hypernetworks read them with fresh weights, so a slot's latent gains
+//!   values of its own that training and the encoding's refinement can move at once (copies
+//!   part slowly; issue 37 measured fresh values fitted on a frozen decoder lifting the fitted
+//!   bound where copies did not). What writes a new value (the GRU's and MLP's rows, the
+//!   background reader's) starts at zero, μ at zero and σ at e⁻⁶, so the new values stay near
+//!   zero until training moves them; the keys and values the image's tokens give get fresh
+//!   rows, the queries' zero ones. With the new values at zero, the hypernetworks' RMS norm
+//!   divides by √(old/new) of the old RMS: their old columns are scaled by that, so the light
+//!   fields of given latents (old values, new ones zero) are the same. Inside slot attention
+//!   the layer norms see the zeros too: their gains are scaled as the RMS norm's, which is
+//!   exact for slots of zero mean and close otherwise (the one growth besides the shadow head's
+//!   and the static background's whose encodings move a little);
 //! - `shadow_head`: a fresh shadow head, zero weights and σ = softplus(−8) ≈ 3·10⁻⁴ on every
 //!   ray: each slot darkens the background by 0.03 % until training finds its shadow (the one
 //!   growth that changes renders, by that much; see `heads.rs`).
@@ -66,9 +79,10 @@ pub fn grow_tensors(
     model: &ColfNet,
     tensors: &BTreeMap<String, Tensor>,
     cfg: &Config,
-    seed: u64,
+    growth: Growth,
     name: &str,
 ) -> Result<BTreeMap<String, Tensor>> {
+    let seed = growth.seed;
     let old = &model.cfg;
     let mut out = tensors.clone();
     if cfg.static_background && !old.static_background {
@@ -87,7 +101,7 @@ pub fn grow_tensors(
                 !k.starts_with("hypernet_bg.") && !k.starts_with("background_reader.")
             });
             insert_fresh(&mut out, cfg, seed, &["background_field."])?;
-            return grow_rest(out, old, cfg, seed, name);
+            return grow_rest(out, old, cfg, growth, name);
         }
         let zero = Tensor::zeros((1, old.slot_dim), DType::F32, &Device::Cpu)?;
         for (l, layer) in hypernet_bg.forward(&zero)?.into_iter().enumerate() {
@@ -105,7 +119,54 @@ pub fn grow_tensors(
     } else if old.static_background && !cfg.static_background {
         bail!("{name}: a static background cannot be turned back into a hypernetwork");
     }
-    grow_rest(out, old, cfg, seed, name)
+    grow_rest(out, old, cfg, growth, name)
+}
+
+/// How a model grows: the seed of its fresh weights, and how a wider `slot_dim` is filled.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Growth {
+    pub seed: u64,
+    pub slot_values: SlotValues,
+}
+
+impl Growth {
+    /// Fresh weights from `seed`; a wider `slot_dim` by copies.
+    pub fn seeded(seed: u64) -> Growth {
+        Growth {
+            seed,
+            slot_values: SlotValues::Copies,
+        }
+    }
+}
+
+/// What a wider `slot_dim`'s new values are (see the module's notes).
+#[derive(
+    Clone,
+    Copy,
+    Debug,
+    Default,
+    PartialEq,
+    Eq,
+    clap::ValueEnum,
+    serde::Serialize,
+    serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum SlotValues {
+    /// Each old value kept m times (the new width a whole multiple m of the old).
+    #[default]
+    Copies,
+    /// New values of their own, starting at zero, read with fresh weights (any wider width).
+    Fresh,
+}
+
+impl SlotValues {
+    pub fn name(self) -> &'static str {
+        match self {
+            SlotValues::Copies => "copies",
+            SlotValues::Fresh => "fresh",
+        }
+    }
 }
 
 /// The growths after the background's: a zero latent made image-dependent, modules gained
@@ -114,9 +175,10 @@ fn grow_rest(
     mut out: BTreeMap<String, Tensor>,
     old: &Config,
     cfg: &Config,
-    seed: u64,
+    growth: Growth,
     name: &str,
 ) -> Result<BTreeMap<String, Tensor>> {
+    let seed = growth.seed;
     if old.zero_background && !cfg.zero_background {
         // (A static background was refused above: it has no hypernetwork to feed.)
         if let Some(weight) = out.get_mut("hypernet_bg.fc1.weight") {
@@ -141,19 +203,37 @@ fn grow_rest(
     }
     insert_fresh(&mut out, cfg, seed, &gained)?;
     if cfg.slot_dim != old.slot_dim {
-        if cfg.slot_dim < old.slot_dim || !cfg.slot_dim.is_multiple_of(old.slot_dim) {
+        if cfg.slot_dim < old.slot_dim {
             bail!(
-                "{name}: `slot_dim` grows only to a whole multiple of {} (asked: {})",
+                "{name}: `slot_dim` can grow ({} → more), not shrink (asked: {})",
                 old.slot_dim,
                 cfg.slot_dim
             );
         }
-        SlotGrowth {
-            old: old.slot_dim,
-            new: cfg.slot_dim,
-            seed,
+        match growth.slot_values {
+            SlotValues::Copies => {
+                if !cfg.slot_dim.is_multiple_of(old.slot_dim) {
+                    bail!(
+                        "{name}: `slot_dim` grows by copies only to a whole multiple of {} (asked: {}; fresh values grow to any width)",
+                        old.slot_dim,
+                        cfg.slot_dim
+                    );
+                }
+                SlotGrowth {
+                    old: old.slot_dim,
+                    new: cfg.slot_dim,
+                    seed,
+                }
+                .apply(&mut out)
+            }
+            SlotValues::Fresh => FreshSlotValues {
+                old: old.slot_dim,
+                new: cfg.slot_dim,
+                rms_norm: old.hypernet_rms_norm,
+                seed,
+            }
+            .apply(&mut out),
         }
-        .apply(&mut out)
         .with_context(|| format!("{name}: growing `slot_dim`"))?;
     }
     for (key, from, to) in [
@@ -354,6 +434,149 @@ impl SlotGrowth {
         for key in readers {
             let grown = self.split_columns_unevenly(&tensors[&key], &key)?;
             tensors.insert(key, grown);
+        }
+        Ok(())
+    }
+}
+
+/// Growing `slot_dim` from `old` to `new` values with new values of their own (see the
+/// module's notes): the new values start at zero, and the hypernetworks read them with fresh
+/// weights.
+struct FreshSlotValues {
+    old: usize,
+    new: usize,
+    /// Whether the hypernetworks divide latents by their RMS (`Config::hypernet_rms_norm`).
+    rms_norm: bool,
+    seed: u64,
+}
+
+impl FreshSlotValues {
+    /// √(old/new): what the zeros do to a norm over a slot's values (RMS, or a layer norm's
+    /// deviation for slots of zero mean).
+    fn norm_scale(&self) -> f64 {
+        (self.old as f64 / self.new as f64).sqrt()
+    }
+
+    /// `t` with `blocks` blocks of slot values along `dim` (the GRU's gates are three), each
+    /// block followed by `new − old` entries from `fill` (given the shape of one block's).
+    fn extend(
+        &self,
+        t: &Tensor,
+        dim: usize,
+        blocks: usize,
+        fill: &dyn Fn(&[usize]) -> Result<Tensor>,
+    ) -> Result<Tensor> {
+        let mut shape = t.dims().to_vec();
+        shape[dim] = self.new - self.old;
+        let mut parts = Vec::with_capacity(2 * blocks);
+        for b in 0..blocks {
+            parts.push(t.narrow(dim, b * self.old, self.old)?);
+            parts.push(fill(&shape)?);
+        }
+        Ok(Tensor::cat(&parts, dim)?.contiguous()?)
+    }
+
+    fn zeros(shape: &[usize]) -> Result<Tensor> {
+        Ok(Tensor::zeros(shape, DType::F32, &Device::Cpu)?)
+    }
+
+    fn apply(&self, tensors: &mut BTreeMap<String, Tensor>) -> Result<()> {
+        let mut update = |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| -> Result<()> {
+            if let Some(t) = tensors.get(key) {
+                let grown = f(t)?;
+                tensors.insert(key.to_string(), grown);
+            }
+            Ok(())
+        };
+        let zeros = |shape: &[usize]| Self::zeros(shape);
+        // The tokens' keys and values get fresh rows: the queries' new (zero) rows and the
+        // GRU's new (zero) columns then receive gradients at once.
+        for key in ["slot_attention.to_k.weight", "slot_attention.to_v.weight"] {
+            update(key, &|t| {
+                self.extend(t, 0, 1, &|shape| fresh_like(t, shape, self.seed, key))
+            })?;
+        }
+        // The background reader writes the background latent: zero rows keep its new values 0.
+        for key in [
+            "background_reader.proj.weight",
+            "background_reader.proj.bias",
+        ] {
+            update(key, &|t| self.extend(t, 0, 1, &zeros))?;
+        }
+        let scale = self.norm_scale();
+        for branch in ["bg", "fg"] {
+            let key = |part: &str| format!("slot_attention.{branch}.{part}");
+            update(&key("mu"), &|t| self.extend(t, 0, 1, &zeros))?;
+            update(&key("log_sigma"), &|t| {
+                self.extend(t, 0, 1, &|shape| {
+                    Ok(Tensor::full(-6f32, shape, &Device::Cpu)?)
+                })
+            })?;
+            // The zeros shrink a layer norm's deviation by √(old/new): the gains shrink with
+            // it (the old units' outputs unchanged for zero-mean slots), the new ones as the
+            // old ones' mean, the new biases zero.
+            for norm in ["norm_slot", "norm_mlp"] {
+                update(&key(&format!("{norm}.weight")), &|t| {
+                    let gain = t.mean_all()?.to_scalar::<f32>()? as f64 * scale;
+                    let grown = self.extend(t, 0, 1, &|shape| {
+                        Ok(Tensor::full(gain as f32, shape, &Device::Cpu)?)
+                    })?;
+                    let old = (grown.narrow(0, 0, self.old)? * scale)?;
+                    Ok(Tensor::cat(
+                        &[&old, &grown.narrow(0, self.old, self.new - self.old)?],
+                        0,
+                    )?)
+                })?;
+                update(&key(&format!("{norm}.bias")), &|t| {
+                    self.extend(t, 0, 1, &zeros)
+                })?;
+            }
+            // The queries: zero new rows and columns; the old block scaled by √(new/old) for
+            // the attention's 1/√D.
+            update(&key("to_q.weight"), &|t| {
+                let rows = self.extend(&(t / scale)?, 0, 1, &zeros)?;
+                self.extend(&rows.t()?, 0, 1, &zeros)?
+                    .t()?
+                    .contiguous()
+                    .map_err(Into::into)
+            })?;
+            // The residual MLP reads the normed slot (zero new columns) and writes it (zero new
+            // rows).
+            update(&key("mlp.layers.0.weight"), &|t| {
+                Ok(self.extend(&t.t()?, 0, 1, &zeros)?.t()?.contiguous()?)
+            })?;
+            for part in ["mlp.layers.1.weight", "mlp.layers.1.bias"] {
+                update(&key(part), &|t| self.extend(t, 0, 1, &zeros))?;
+            }
+            // The GRU (gates r, z, n of slot-sized rows) reads the update and the slot: zero new
+            // rows (z = ½, n = 0: a new value halves each round) and zero new columns.
+            for part in ["gru.weight_ih_l0", "gru.weight_hh_l0"] {
+                update(&key(part), &|t| {
+                    let rows = self.extend(t, 0, 3, &zeros)?;
+                    Ok(self.extend(&rows.t()?, 0, 1, &zeros)?.t()?.contiguous()?)
+                })?;
+            }
+            for part in ["gru.bias_ih_l0", "gru.bias_hh_l0"] {
+                update(&key(part), &|t| self.extend(t, 0, 3, &zeros))?;
+            }
+        }
+        // The hypernetworks read the latent: fresh columns for the new values, the old ones
+        // scaled for the RMS norm's new divisor.
+        let readers: Vec<String> = tensors
+            .keys()
+            .filter(|k| {
+                (k.starts_with("hypernet_fg.") || k.starts_with("hypernet_bg."))
+                    && k.ends_with("fc1.weight")
+            })
+            .cloned()
+            .collect();
+        let old_scale = if self.rms_norm { scale } else { 1.0 };
+        for key in readers {
+            let t = (&tensors[&key] * old_scale)?;
+            let columns = self.extend(&t.t()?, 0, 1, &|shape| {
+                fresh_like(&t, shape, self.seed, &key)
+            })?;
+            tensors.insert(key, columns.t()?.contiguous()?);
         }
         Ok(())
     }

@@ -48,6 +48,9 @@ pub struct TrainingRun {
     /// Config overrides (`--set`) the run applied.
     #[serde(default)]
     pub config_overrides: Vec<String>,
+    /// How a wider `slot_dim` among the overrides was filled, when not by copies (`fresh`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub slot_values: Option<String>,
     /// Prefixes of the parameters the run kept fixed (`--freeze`).
     #[serde(default)]
     pub frozen: Vec<String>,
@@ -225,6 +228,7 @@ mod tests {
             init: Some("c1fd4506bf2ce4e6".into()),
             preset: None,
             config_overrides: vec![],
+            slot_values: None,
             frozen: vec!["encoder.".into()],
             lr_scale: vec![("hypernet_bg.fc1.".into(), 20.0)],
             steps: 10,

@@ -157,8 +157,14 @@ impl Colf {
     /// same function (`static_background`, a wider `hypernet_hidden`; new weights drawn from
     /// `seed`); anything else is refused, naming `name`.
     pub fn reconfigured(&self, cfg: &Config, seed: u64, name: &str) -> Result<Colf> {
+        self.grown(cfg, grow::Growth::seeded(seed), name)
+    }
+
+    /// As [`Colf::reconfigured`], with the growth's choices (e.g. a wider `slot_dim`'s fresh
+    /// values) given.
+    pub fn grown(&self, cfg: &Config, growth: grow::Growth, name: &str) -> Result<Colf> {
         cfg.validate()?;
-        let tensors = grow::grow_tensors(&self.model, &self.params, cfg, seed, name)?;
+        let tensors = grow::grow_tensors(&self.model, &self.params, cfg, growth, name)?;
         Ok(Colf::build(cfg.clone(), tensors, None, name)?.with_training(self.training.clone()))
     }
 

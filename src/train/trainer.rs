@@ -9,6 +9,7 @@ use super::known_background::{view_proposals, KnownBackground};
 use crate::dataset::{Dataset, SceneData};
 use crate::model::checkpoint::{self, HostParams};
 use crate::model::encoder::image_tensor;
+use crate::model::grow::{Growth, SlotValues};
 use crate::model::history::{self, TrainingRun};
 use crate::model::{Colf, Config, Decoded, RayBatch, SceneRays, SlotOutput};
 use crate::optim::{Adam, AdamConfig};
@@ -102,6 +103,10 @@ pub struct TrainOptions {
     /// Fresh models only: KEY=VALUE overrides of the preset's config.
     #[serde(default)]
     pub config_overrides: Vec<String>,
+    /// With `init` and a wider `slot_dim` among the overrides: copies of the old values or
+    /// fresh ones (`model::grow`).
+    #[serde(default)]
+    pub slot_values: SlotValues,
     pub seed: u64,
     pub checkpoint_every: u64,
     /// Also keep a copy of the model file every this many steps (0: never), named by
@@ -362,7 +367,11 @@ impl Trainer {
                         colf
                     } else {
                         let cfg = colf.config().with_overrides(&opts.config_overrides)?;
-                        colf.reconfigured(&cfg, opts.seed, &p.display().to_string())
+                        let growth = Growth {
+                            seed: opts.seed,
+                            slot_values: opts.slot_values,
+                        };
+                        colf.grown(&cfg, growth, &p.display().to_string())
                             .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden or lfn_hidden, hypernet_per_layer)")?
                     }
                 }
@@ -917,6 +926,8 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         preset: init.is_none().then(|| opts.preset.clone()),
         init,
         config_overrides: opts.config_overrides.clone(),
+        slot_values: (opts.init.is_some() && opts.slot_values != SlotValues::Copies)
+            .then(|| opts.slot_values.name().to_string()),
         frozen: opts.freeze.clone(),
         lr_scale: opts.lr_scale.clone(),
         steps: 0,
