@@ -405,6 +405,23 @@ fn a_model_grown_to_the_paper_decoders_shape_renders_the_same_and_trains_it_all(
     assert!(err.starts_with("m.safetensors: "), "{err}");
 }
 
+/// Slot attention's output for the test image with the initial noise `noise` [1, 1 + K, D].
+fn slots(colf: &Colf, noise: &Tensor) -> colf::model::SlotOutput {
+    let s = colf.config().encoder_size;
+    let images = Tensor::from_vec(test_image(s), (1, s, s, 3), &Device::Cpu)
+        .unwrap()
+        .permute((0, 3, 1, 2))
+        .unwrap()
+        .contiguous()
+        .unwrap();
+    let model = colf.model();
+    let tokens = model.encoder.forward(&images).unwrap();
+    model
+        .slot_attention
+        .forward_with_noise(&tokens, noise)
+        .unwrap()
+}
+
 /// The error of growing a fresh `cfg` model (file name `m.safetensors`) with `setting`.
 fn refused_growth(cfg: &Config, setting: &str) -> String {
     let to = cfg.with_overrides(&[setting.to_string()]).unwrap();
@@ -434,23 +451,8 @@ fn wider_slots_keep_each_value_in_copies_and_compute_the_same() {
         let wide = small.reconfigured(&wide_cfg, 4, "m").unwrap();
         // The same image and the same initial noise in every copy: the same attention, slots
         // held m times, the same light fields.
-        let s = cfg.encoder_size;
-        let images = Tensor::from_vec(test_image(s), (1, s, s, 3), &Device::Cpu)
-            .unwrap()
-            .permute((0, 3, 1, 2))
-            .unwrap()
-            .contiguous()
-            .unwrap();
         let noise = seeded_normal(1.0, &[1, 4, d], 9);
         let copied = Tensor::cat(&[&noise, &noise], 2).unwrap();
-        let slots = |colf: &Colf, noise: &Tensor| {
-            let model = colf.model();
-            let tokens = model.encoder.forward(&images).unwrap();
-            model
-                .slot_attention
-                .forward_with_noise(&tokens, noise)
-                .unwrap()
-        };
         let (before, after) = (slots(&small, &noise), slots(&wide, &copied));
         let gap = relative_gap(&before.log_attention, &after.log_attention);
         assert!(gap < 1e-5, "attention changed: {gap}");
@@ -555,22 +557,7 @@ fn wider_slots_with_fresh_values_draw_the_same_fields_and_read_the_new_values() 
         // Slot attention: the same image and noise give new values near zero, and attention
         // near the old (not the same: the layer norms see the zeros, which is exact only for
         // zero-mean slots, and this untrained model's have a mean of about 1.8).
-        let s = cfg.encoder_size;
-        let images = Tensor::from_vec(test_image(s), (1, s, s, 3), &Device::Cpu)
-            .unwrap()
-            .permute((0, 3, 1, 2))
-            .unwrap()
-            .contiguous()
-            .unwrap();
         let noise = seeded_normal(1.0, &[1, 4, d], 9);
-        let slots = |colf: &Colf, noise: &Tensor| {
-            let model = colf.model();
-            let tokens = model.encoder.forward(&images).unwrap();
-            model
-                .slot_attention
-                .forward_with_noise(&tokens, noise)
-                .unwrap()
-        };
         let wide_noise =
             Tensor::cat(&[&noise, &seeded_normal(1.0, &[1, 4, wide_d - d], 8)], 2).unwrap();
         let (before, after) = (slots(&small, &noise), slots(&wide, &wide_noise));

@@ -375,13 +375,8 @@ impl SlotGrowth {
     }
 
     fn apply(&self, tensors: &mut BTreeMap<String, Tensor>) -> Result<()> {
-        let mut update = |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| -> Result<()> {
-            if let Some(t) = tensors.get(key) {
-                let grown = f(t)?;
-                tensors.insert(key.to_string(), grown);
-            }
-            Ok(())
-        };
+        let mut update =
+            |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| replace_tensor(tensors, key, f);
         // The projections from the image's tokens into slot space, and the background
         // reader's (a background slot read from the tokens).
         for key in [
@@ -423,14 +418,7 @@ impl SlotGrowth {
             }
         }
         // The hypernetworks read the latent: their shared hidden layer or each layer's own.
-        let readers: Vec<String> = tensors
-            .keys()
-            .filter(|k| {
-                (k.starts_with("hypernet_fg.") || k.starts_with("hypernet_bg."))
-                    && k.ends_with("fc1.weight")
-            })
-            .cloned()
-            .collect();
+        let readers = latent_readers(tensors);
         for key in readers {
             let grown = self.split_columns_unevenly(&tensors[&key], &key)?;
             tensors.insert(key, grown);
@@ -481,13 +469,8 @@ impl FreshSlotValues {
     }
 
     fn apply(&self, tensors: &mut BTreeMap<String, Tensor>) -> Result<()> {
-        let mut update = |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| -> Result<()> {
-            if let Some(t) = tensors.get(key) {
-                let grown = f(t)?;
-                tensors.insert(key.to_string(), grown);
-            }
-            Ok(())
-        };
+        let mut update =
+            |key: &str, f: &dyn Fn(&Tensor) -> Result<Tensor>| replace_tensor(tensors, key, f);
         let zeros = |shape: &[usize]| Self::zeros(shape);
         // The tokens' keys and values get fresh rows: the queries' new (zero) rows and the
         // GRU's new (zero) columns then receive gradients at once.
@@ -562,14 +545,7 @@ impl FreshSlotValues {
         }
         // The hypernetworks read the latent: fresh columns for the new values, the old ones
         // scaled for the RMS norm's new divisor.
-        let readers: Vec<String> = tensors
-            .keys()
-            .filter(|k| {
-                (k.starts_with("hypernet_fg.") || k.starts_with("hypernet_bg."))
-                    && k.ends_with("fc1.weight")
-            })
-            .cloned()
-            .collect();
+        let readers = latent_readers(tensors);
         let old_scale = if self.rms_norm { scale } else { 1.0 };
         for key in readers {
             let t = (&tensors[&key] * old_scale)?;
@@ -580,6 +556,32 @@ impl FreshSlotValues {
         }
         Ok(())
     }
+}
+
+/// `tensors[key]` replaced by `f` of it (nothing if the model has no such tensor).
+fn replace_tensor(
+    tensors: &mut BTreeMap<String, Tensor>,
+    key: &str,
+    f: &dyn Fn(&Tensor) -> Result<Tensor>,
+) -> Result<()> {
+    if let Some(t) = tensors.get(key) {
+        let grown = f(t)?;
+        tensors.insert(key.to_string(), grown);
+    }
+    Ok(())
+}
+
+/// The hypernetworks' weights that read a slot's latent: their shared hidden layer's or each
+/// light-field layer's own.
+fn latent_readers(tensors: &BTreeMap<String, Tensor>) -> Vec<String> {
+    tensors
+        .keys()
+        .filter(|k| {
+            (k.starts_with("hypernet_fg.") || k.starts_with("hypernet_bg."))
+                && k.ends_with("fc1.weight")
+        })
+        .cloned()
+        .collect()
 }
 
 /// `{key}` [rows, C] widened to `columns` with zero columns: new inputs have no effect yet.
