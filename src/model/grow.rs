@@ -160,15 +160,6 @@ pub enum SlotValues {
     Fresh,
 }
 
-impl SlotValues {
-    pub fn name(self) -> &'static str {
-        match self {
-            SlotValues::Copies => "copies",
-            SlotValues::Fresh => "fresh",
-        }
-    }
-}
-
 /// The growths after the background's: a zero latent made image-dependent, modules gained
 /// whole, wider hypernetworks and light fields.
 fn grow_rest(

@@ -50,7 +50,7 @@ pub struct TrainingRun {
     pub config_overrides: Vec<String>,
     /// How a wider `slot_dim` among the overrides was filled, when not by copies (`fresh`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub slot_values: Option<String>,
+    pub slot_values: Option<crate::model::grow::SlotValues>,
     /// Prefixes of the parameters the run kept fixed (`--freeze`).
     #[serde(default)]
     pub frozen: Vec<String>,

@@ -926,8 +926,13 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         preset: init.is_none().then(|| opts.preset.clone()),
         init,
         config_overrides: opts.config_overrides.clone(),
-        slot_values: (opts.init.is_some() && opts.slot_values != SlotValues::Copies)
-            .then(|| opts.slot_values.name().to_string()),
+        slot_values: (opts.init.is_some()
+            && opts.slot_values != SlotValues::Copies
+            && opts
+                .config_overrides
+                .iter()
+                .any(|s| s.starts_with("slot_dim=")))
+        .then_some(opts.slot_values),
         frozen: opts.freeze.clone(),
         lr_scale: opts.lr_scale.clone(),
         steps: 0,
