@@ -604,14 +604,23 @@ fn measure_model_render(path: &str, slots: usize, size: usize, reps: usize) -> R
     }))
 }
 
-/// The bundled default model's default encoding (its measured slots, tries and refinement, as
-/// `colf-encode` with no flags, or with `HALF_REFINEMENT` when `half`) of view 0 of a colf-synth
-/// scene of `size`², with the refinement through the fused decoder or (`reference`) candle's
-/// autograd. Reports wall and CPU time.
-fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize) -> Result<Value> {
+/// The bundled default model.
+const BUNDLED_MODEL: &str = "models/default.safetensors";
+
+/// A model file's default encoding (its measured slots, tries and refinement, as `colf-encode`
+/// with no flags, or with `HALF_REFINEMENT` when `half`) of view 0 of a colf-synth scene of
+/// `size`², with the refinement through the fused decoder or (`reference`) candle's autograd.
+/// Reports wall and CPU time. Rows of a model other than the bundled one name its path.
+fn measure_default_encode(
+    model_path: &str,
+    size: usize,
+    reference: bool,
+    half: bool,
+    reps: usize,
+) -> Result<Value> {
     use clap::Parser;
     let scene = BenchScene::new(size)?;
-    let mut model = Colf::load(std::path::Path::new("models/default.safetensors"))?;
+    let mut model = Colf::load(std::path::Path::new(model_path))?;
     model.set_reference_decoder(reference);
     let (image, cameras) = scene.view_0(&model)?;
     let flags: &[&str] = if half { &HALF_REFINEMENT } else { &[] };
@@ -627,11 +636,15 @@ fn measure_default_encode(size: usize, reference: bool, half: bool, reps: usize)
         colf::encode::encode_image(&model, &image, &opts).map(|_| ())
     })?;
     let path = if reference { "autograd" } else { "fused" };
-    let what = if half {
+    let mut what = if half {
         "half-length refinement"
     } else {
         "default encoding"
-    };
+    }
+    .to_string();
+    if model_path != BUNDLED_MODEL {
+        what = format!("{what} of {model_path}");
+    }
     let threads = rayon::current_num_threads();
     let plural = if threads == 1 { "" } else { "s" };
     Ok(json!({
@@ -681,6 +694,7 @@ fn run_one(spec: &Value) -> Result<Value> {
             if quick { 3 } else { 10 },
         ),
         Some("default-encode") => measure_default_encode(
+            spec["model"].as_str().unwrap_or(BUNDLED_MODEL),
             spec["size"].as_u64().unwrap_or(64) as usize,
             spec["reference"].as_bool().unwrap_or(false),
             spec["half"].as_bool().unwrap_or(false),
@@ -723,6 +737,12 @@ fn main() -> Result<()> {
         .unwrap_or_else(|| "target/bench/bench.json".into());
     let only_render = args.iter().any(|a| a == "--render-only");
     let only_train = args.iter().any(|a| a == "--train-only");
+    // A model file to measure beside the bundled one (`--model PATH`): its frame and its default
+    // encoding, each next to the bundled model's row, so their ratio comes from one run.
+    let other_model = args
+        .iter()
+        .position(|a| a == "--model")
+        .and_then(|i| args.get(i + 1).cloned());
     let mut specs = vec![json!({"kind": "matmul"})];
     if !only_render {
         // The trainer: the decoder part of a step and whole steps, fused and autograd side by
@@ -758,16 +778,19 @@ fn main() -> Result<()> {
             // The same on one thread: what a second core gives, as a ratio from this run.
             specs.push(json!({"kind": "default-encode", "size": size, "threads": 1}));
         }
+        // Issue 37's encoding budget (1.5x the bundled model's CPU time) is read on these rows,
+        // the bundled model's measured again after the other's.
+        if let Some(model) = &other_model {
+            specs
+                .push(json!({"kind": "default-encode", "model": model, "size": 128, "threads": 1}));
+            specs.push(json!({"kind": "default-encode", "size": 128, "threads": 1}));
+        }
     }
     if !only_train {
         // The shipped model file (and any `--model PATH` given) as colf-render draws a 7-slot
         // frame: issue 37's frame-rate target is read on this row.
-        let mut model_files = vec!["models/default.safetensors".to_string()];
-        model_files.extend(
-            args.iter()
-                .position(|a| a == "--model")
-                .and_then(|i| args.get(i + 1).cloned()),
-        );
+        let mut model_files = vec![BUNDLED_MODEL.to_string()];
+        model_files.extend(other_model.clone());
         for model in model_files {
             specs.push(json!({"kind": "render-model", "model": model, "slots": 7, "size": 128}));
         }
@@ -982,10 +1005,13 @@ fn main() -> Result<()> {
     for size in [64, 128] {
         // The encoding row of `kind` ("default encoding", "half-length refinement") through
         // `path` ("fused", "autograd") at this size.
+        // (The bundled model's rows: `kind (…`; another model's: `kind of PATH (…`.)
         let rows = |kind: &str, path: &str| {
             results.iter().find(|r| {
                 let what = r["what"].as_str().unwrap_or("");
-                what.starts_with(kind) && what.contains(path) && r["resolution"] == size
+                what.starts_with(&format!("{kind} ("))
+                    && what.contains(path)
+                    && r["resolution"] == size
             })
         };
         let default = rows("default encoding", "fused");
@@ -997,6 +1023,30 @@ fn main() -> Result<()> {
         }
         if let Some(x) = ratio(default, rows("default encoding", "fused; 1 thread)"), "ms") {
             println!("default encoding at {size}²: two threads {x:.2}x faster than one");
+        }
+    }
+    if let Some(model) = &other_model {
+        // Both bundled rows at 128² on one thread (before and after the other model's), averaged.
+        let one_thread = |kind: String| -> Vec<f64> {
+            results
+                .iter()
+                .filter(|r| {
+                    let what = r["what"].as_str().unwrap_or("");
+                    what.starts_with(&kind)
+                        && what.contains("fused; 1 thread)")
+                        && r["resolution"] == 128
+                })
+                .filter_map(|r| r["cpu_s"].as_f64())
+                .collect()
+        };
+        let bundled = one_thread("default encoding (".into());
+        let other = one_thread(format!("default encoding of {model} ("));
+        if let (false, Some(&cpu)) = (bundled.is_empty(), other.first()) {
+            let mean = bundled.iter().sum::<f64>() / bundled.len() as f64;
+            println!(
+                "default encoding at 128², one thread: {model} takes {:.2}x the bundled model's CPU time",
+                cpu / mean
+            );
         }
     }
     if let Some(dir) = std::path::Path::new(&out).parent() {
