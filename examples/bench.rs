@@ -636,15 +636,16 @@ fn measure_default_encode(
         colf::encode::encode_image(&model, &image, &opts).map(|_| ())
     })?;
     let path = if reference { "autograd" } else { "fused" };
-    let mut what = if half {
+    let kind = if half {
         "half-length refinement"
     } else {
         "default encoding"
-    }
-    .to_string();
-    if model_path != BUNDLED_MODEL {
-        what = format!("{what} of {model_path}");
-    }
+    };
+    let what = if model_path == BUNDLED_MODEL {
+        kind.to_string()
+    } else {
+        format!("{kind} of {model_path}")
+    };
     let threads = rayon::current_num_threads();
     let plural = if threads == 1 { "" } else { "s" };
     Ok(json!({
@@ -1002,18 +1003,19 @@ fn main() -> Result<()> {
             }
         }
     }
+    // The encoding rows of `kind` ("default encoding", "half-length refinement"; the bundled
+    // model's, or "default encoding of PATH" for another's) through `path` ("fused",
+    // "autograd", "fused; 1 thread)") at `size`².
+    let encoding_rows = |kind: &str, path: &str, size: usize| {
+        let prefix = format!("{kind} (");
+        let path = path.to_string();
+        results.iter().filter(move |r| {
+            let what = r["what"].as_str().unwrap_or("");
+            what.starts_with(&prefix) && what.contains(&path) && r["resolution"] == size
+        })
+    };
     for size in [64, 128] {
-        // The encoding row of `kind` ("default encoding", "half-length refinement") through
-        // `path` ("fused", "autograd") at this size.
-        // (The bundled model's rows: `kind (…`; another model's: `kind of PATH (…`.)
-        let rows = |kind: &str, path: &str| {
-            results.iter().find(|r| {
-                let what = r["what"].as_str().unwrap_or("");
-                what.starts_with(&format!("{kind} ("))
-                    && what.contains(path)
-                    && r["resolution"] == size
-            })
-        };
+        let rows = |kind: &str, path: &str| encoding_rows(kind, path, size).next();
         let default = rows("default encoding", "fused");
         if let Some(x) = ratio(default, rows("default encoding", "autograd"), "cpu_s") {
             println!("default encoding at {size}²: fused {x:.2}x less CPU time than autograd");
@@ -1027,20 +1029,13 @@ fn main() -> Result<()> {
     }
     if let Some(model) = &other_model {
         // Both bundled rows at 128² on one thread (before and after the other model's), averaged.
-        let one_thread = |kind: String| -> Vec<f64> {
-            results
-                .iter()
-                .filter(|r| {
-                    let what = r["what"].as_str().unwrap_or("");
-                    what.starts_with(&kind)
-                        && what.contains("fused; 1 thread)")
-                        && r["resolution"] == 128
-                })
+        let one_thread = |kind: &str| -> Vec<f64> {
+            encoding_rows(kind, "fused; 1 thread)", 128)
                 .filter_map(|r| r["cpu_s"].as_f64())
                 .collect()
         };
-        let bundled = one_thread("default encoding (".into());
-        let other = one_thread(format!("default encoding of {model} ("));
+        let bundled = one_thread("default encoding");
+        let other = one_thread(&format!("default encoding of {model}"));
         if let (false, Some(&cpu)) = (bundled.is_empty(), other.first()) {
             let mean = bundled.iter().sum::<f64>() / bundled.len() as f64;
             println!(

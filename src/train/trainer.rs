@@ -928,10 +928,11 @@ fn run_record(opts: &TrainOptions, data: &[SceneData], init: Option<String>) -> 
         config_overrides: opts.config_overrides.clone(),
         slot_values: (opts.init.is_some()
             && opts.slot_values != SlotValues::Copies
-            && opts
-                .config_overrides
-                .iter()
-                .any(|s| s.starts_with("slot_dim=")))
+            && opts.config_overrides.iter().any(|s| {
+                // Keys as `Config::with_overrides` reads them.
+                s.split_once('=')
+                    .is_some_and(|(key, _)| key.trim() == "slot_dim")
+            }))
         .then_some(opts.slot_values),
         frozen: opts.freeze.clone(),
         lr_scale: opts.lr_scale.clone(),
