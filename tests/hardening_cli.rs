@@ -566,10 +566,12 @@ fn errors_name_the_file() {
     let cams = cameras(dir.path(), 2, 8);
     // Latents of another size than the model's.
     let mut codes = sample(1, 32);
-    codes.model = colf::cli::model_path::load_model(None)
-        .unwrap()
-        .identity()
-        .unwrap();
+    let model = colf::cli::model_path::load_model(None).unwrap();
+    codes.model = model.identity().unwrap();
+    let expected = format!(
+        "short.codes: latents have 32 values, the model's slots have {}",
+        model.config().slot_dim
+    );
     let short = codes_file(dir.path(), "short.codes", &codes);
     let out = dir.path().join("out");
     fails_with(
@@ -578,7 +580,7 @@ fn errors_name_the_file() {
             .arg(&out),
         "render",
         1,
-        "short.codes: latents have 32 values, the model's slots have 64",
+        &expected,
     );
     // A focal length of 1e-300.
     let text = std::fs::read_to_string(&cams).unwrap();

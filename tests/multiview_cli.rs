@@ -47,8 +47,9 @@ fn one_image_encodes_as_it_always_did_and_several_give_one_scene() {
         std::fs::read(&one).unwrap(),
         std::fs::read(&framed).unwrap()
     );
-    // Three views: one scene whose slots name the images they came from; view 0's slots
-    // are all there, later views add only what they alone show.
+    // Three views: one scene whose slots name the images they came from. Each of view 0's
+    // slots is kept or taken over by a later view's slot of the same object that draws it
+    // better, so none is lost; later views add only what they alone show.
     let three = encode(&[view(0), view(1), view(2)], &[], "three.codes");
     let doc = inspect(&three);
     let sources: Vec<String> = doc["slots"]
@@ -58,12 +59,14 @@ fn one_image_encodes_as_it_always_did_and_several_give_one_scene() {
         .map(|s| s["source"].as_str().unwrap().to_string())
         .collect();
     let first = inspect(&one)["slots"].as_array().unwrap().len();
-    assert_eq!(
-        sources
-            .iter()
-            .filter(|s| s.starts_with("view_000.png#"))
-            .count(),
-        first
+    let from_view_0 = sources
+        .iter()
+        .filter(|s| s.starts_with("view_000.png#"))
+        .count();
+    assert!(from_view_0 > 0 && from_view_0 <= first, "{sources:?}");
+    assert!(
+        sources.len() >= first,
+        "a slot of view 0 was lost: {sources:?}"
     );
     assert!(
         sources.len() < 3 * first,
