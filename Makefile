@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-default data-paper model-paper model-paper-wide model-paper-then-city resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -85,15 +85,17 @@ man:
 	done
 	@echo "man pages: $(words $(wildcard man/*.1)) rendered without warnings"
 
-# Synthesise a held-out scene, encode its first view (the model's default encoding: 12 slots, best of
-# 4 tries, 50 refinement steps, then the slots the view does not need dropped: one slot an
-# object), move one object (the blue cylinder) and delete another (the large cyan cylinder),
-# render an orbit of novel views with masks before and after the edit, and draw a contact sheet:
+# Synthesise a held-out 128² scene, encode its first view (the model's default encoding: the best
+# of several tries, refined, then the slots the view does not need dropped: one slot an object),
+# move one object (the blue cylinder) and delete another (the large cyan cylinder; the edits name
+# them by where they stand), render an orbit of novel 128² views with masks before and after the
+# edit, and draw a contact sheet:
 #   row 1: the input view, then novel views of the encoded scene
 #   row 2: the ground-truth mask of the input view, then the rendered masks (one colour a slot)
 #   row 3: the same novel views after the edit;  row 4: their masks
-# $(call demo_steps,DIR,SYNTH_FLAGS,MODEL_FLAGS,EDITS[,ORBIT_FLAGS]): the demo's steps in DIR;
-# ORBIT_FLAGS (colf-cameras orbit's) default to `--size 64` about the clevr567 cameras' circle.
+# $(call demo_steps,DIR,SYNTH_FLAGS,MODEL_FLAGS,EDITS[,ORBIT_FLAGS[,SHEET_SCALE]]): the demo's
+# steps in DIR; ORBIT_FLAGS (colf-cameras orbit's) default to `--size 64` about the clevr567
+# cameras' circle, SHEET_SCALE (the sheet's pixels per image pixel) to 3.
 define demo_steps
 	@mkdir -p $(1)
 	$(RELEASE)/colf-synth $(2) --out $(1)/data --scenes 1 --seed 7 --split test -q --force
@@ -104,7 +106,7 @@ define demo_steps
 	$(RELEASE)/colf-cameras orbit --frames 4 $(if $(5),$(5),--size 64) --start-azimuth 20 -o $(1)/orbit.json
 	$(RELEASE)/colf-render $(1)/scene.codes $(3) --cameras $(1)/orbit.json --out $(1)/orbit --masks -q
 	$(RELEASE)/colf-render $(1)/edited.codes $(3) --cameras $(1)/orbit.json --out $(1)/edited --masks -q
-	$(RELEASE)/colf-sheet --cols 5 --scale 3 -o $(1)/sheet.png \
+	$(RELEASE)/colf-sheet --cols 5 --scale $(if $(6),$(6),3) -o $(1)/sheet.png \
 	  $(1)/data/scene_00000/view_000.png $(1)/orbit/frame_000{0,1,2,3}.png \
 	  $(1)/data/scene_00000/view_000.mask.png $(1)/orbit/frame_000{0,1,2,3}.mask.png \
 	  - $(1)/edited/frame_000{0,1,2,3}.png \
@@ -114,15 +116,16 @@ define demo_steps
 endef
 
 demo: build
-	$(call demo_steps,$(DEMO),,,examples/demo-edits.json)
+	$(call demo_steps,$(DEMO),--size 128,,examples/demo-edits.json,--size 128,2)
 
 # The same demo on the same scene rendered by Blender (Cycles; apt-get install blender), encoded,
 # edited and rendered with the bundled `blender` model (the supervised model adapted to Blender's
 # look without labels: make model-blender). The edit moves the blue cylinder (slot 2 of this
 # encoding) and deletes the large cyan one (slots 1 and 5: the encoding gave it a second slot,
-# hidden behind it in the input view). The sheet is docs/blender-sheet.png. The default model
-# also encodes this scene, less well: it draws the small green cylinder blue, and deleting the
-# large cyan one leaves a faint cyan haze (docs/training-log.md, run r2).
+# hidden behind it in the input view). The sheet is docs/blender-sheet.png. The small model
+# (the default until 2026-11-29) also encodes this scene, less well: it draws the small green
+# cylinder blue, and deleting the large cyan one leaves a faint cyan haze (docs/training-log.md,
+# run r2).
 demo-blender: build
 	$(call demo_steps,out/demo-blender,--engine blender,--model blender,examples/demo-blender-edits.json)
 
@@ -324,7 +327,7 @@ model-blender: build
 # uniform rays; shadows; 4 views a scene), u5 without the compositor's mask loss (the proposals'
 # borders are rougher than the objects'). The result gets the same default encoding as the
 # supervised model and is scored: $(UNSUP_RUN)/model.safetensors, the analytic-only model that
-# make model-both then grows into the bundled default (make model-default runs both). Re-running
+# make model-both then grows into the small model (make model-small runs both). Re-running
 # resumes from the checkpoints in $(UNSUP_RUN). About 7 CPU-hours: run it in the background.
 UNSUP_RUN ?= out/unsup
 # Extra `--set` overrides of u1's fresh model (make model-paper: the paper's decoder sizes).
@@ -380,21 +383,33 @@ model-unsupervised: data-unsupervised
 	  --set 'inference={"slots":12,"tries":4,"refine":50}' -o $(UNSUP_RUN)/model.safetensors
 	$(call eval_model,$(UNSUP_RUN),$(UNSUP_RUN)/model.safetensors)
 
-# The bundled default model: both recipes, one after the other (about 8 CPU-hours and Blender).
-model-default:
+# The small model that was the bundled default until 2026-11-29 (identity e7b2d9734a8da004) and
+# that make model-paper grows: both recipes, one after the other (about 8 CPU-hours and Blender);
+# the result is $(BOTH_RUN)/model.safetensors.
+model-small:
 	$(MAKE) model-unsupervised
 	$(MAKE) model-both
+
+# The bundled default model (issue 37; docs/training.md, "The paper-sized decoder"): p12's
+# final model (make model-paper to p11's step 36,000, then make model-paper-wide), its weight
+# matrices stored in half precision, with the default encoding chosen within 1.5× the CPU time
+# of the small model's (DEFAULT_INFERENCE: 20 refinement steps of 512 rays; docs/refinement.md).
+DEFAULT_INFERENCE := {"slots":12,"tries":4,"refine":20,"refine_lr":0.025,"refine_frame_lr":0.015,"refine_rays":512}
+model-default: build
+	test -f $(PAPER_RUN)/p12-blender128-fast.json || $(MAKE) model-paper-wide
+	$(RELEASE)/colf-train configure $(PAPER_RUN)/p12.safetensors --half \
+	  --set 'inference=$(DEFAULT_INFERENCE)' -o models/default.safetensors
 
 # One model for both looks, without labels (docs/training-log.md, run r2): the bundled default
 # model. The analytic model of `make model-unsupervised` ($(UNSUP_RUN)/model.safetensors) grows a background
 # that reads the image (--set background_reader=true) and trains on 600 Blender scenes, 600 of
 # its own analytic ones and 400 with a randomised look, all without mask files; object
 # proposals feed the attention mask loss, as in u5. Writes $(BOTH_RUN)/model.safetensors and
-# scores it on the analytic and the Blender (128²) test scenes, then copies it to
-# models/default.safetensors. Needs Blender; re-running resumes.
+# scores it on the analytic and the Blender (128²) test scenes (it was the bundled default model
+# until 2026-11-29). Needs Blender; re-running resumes.
 BOTH_RUN ?= out/both
-# Where the result is installed (empty: nowhere; make model-paper keeps its result in its run).
-BOTH_INSTALL ?= models/default.safetensors
+# Where the result is also copied (empty: nowhere).
+BOTH_INSTALL ?=
 # The recipe's data alone: Blender, analytic and randomised-look scenes without mask files, the
 # Blender validation and 128² test scenes (what make model-paper also trains on).
 data-both: data-unsupervised
@@ -420,23 +435,32 @@ model-both: build
 	$(call eval_json,$(BOTH_RUN)/data/test128,$(BOTH_RUN)/model.safetensors,$(BOTH_RUN)/blender128.json)
 	$(if $(BOTH_INSTALL),cp $(BOTH_RUN)/model.safetensors $(BOTH_INSTALL))
 
-# The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the bundled
-# default model grown to the `paper` preset's decoder (light fields 2×256 → 64 features,
-# colour/ordering heads and compositor 3×128; hypernetworks 128 wide) without changing what it
+# The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the small
+# model (PAPER_INIT: the bundled default until 2026-11-29) grown to the `paper` preset's decoder
+# (light fields 2×256 → 64 features, colour/ordering heads and compositor 3×128; hypernetworks
+# 128 wide) without changing what it
 # computes (`colf-train --init` with `--set`, src/model/grow.rs: new units start with zero
 # outgoing weights, new layers as the identity), then trained on the paper's 128² schedule on a
-# mix of looks without labels. Growing skips the ~88,000 steps of the default model's recipe that
+# mix of looks without labels. Growing skips the ~88,000 steps of the small model's recipe that
 # a fresh paper-sized decoder needs to reach the same point (docs/training-log.md). Runs for days
 # on one core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and
-# re-running resumes where it stopped (nohup, one thread: see docs/training.md). The result stays
-# in $(PAPER_RUN)/p11.safetensors until it is shown better than the bundled default.
+# re-running resumes where it stopped (nohup, one thread: see docs/training.md). p12 below
+# continues it; make model-default makes the bundled default model of p12's final model.
 #
 # p11 is p10 (itself run p2's stages p6–p9 in one) with the paper's 128-value slots: each `--set`
 # below was added by one of those stages or runs, for the reason given beside it, and grows the
 # same from the bundled model all at once. (The machine lost p9 at step ≈ 22,000 and p10 at step
 # ≈ 26,400, both on 2026-11-28; docs/training-log.md.)
 PAPER_RUN ?= $(HOME)/colf-runs/paper
-PAPER_INIT ?= models/default.safetensors
+# The small model, taken from the repository's history (the last commit that shipped it as
+# models/default.safetensors); make model-small trains it again (PAPER_INIT=out/both/model.safetensors).
+SMALL_MODEL_COMMIT := 3fa40e0
+PAPER_INIT ?= $(PAPER_RUN)/small.safetensors
+$(PAPER_RUN)/small.safetensors:
+	@mkdir -p $(PAPER_RUN)
+	git show $(SMALL_MODEL_COMMIT):models/default.safetensors > $@.tmp || { rm -f $@.tmp; \
+	  echo "model-paper: commit $(SMALL_MODEL_COMMIT) is not in this clone: run make model-small and set PAPER_INIT=$(BOTH_RUN)/model.safetensors" >&2; exit 1; }
+	mv $@.tmp $@
 PAPER_DECODER := --set lfn_hidden=256 --set lfn_features=64 --set head_hidden=128 \
   --set head_hidden_layers=3 --set compositor_hidden=128 --set compositor_hidden_layers=3
 # Both hypernetworks 128 wide, the `paper` preset's: every light field a hypernetwork makes is an
@@ -493,7 +517,7 @@ data-paper: build
 # p11: the paper's 60,000 steps at 128² (Adam 5e-5, a half cosine to 5e-6 from step 40,000);
 # scored at the end on 100 held-out 128² scenes of each look
 # ($(PAPER_RUN)/p11-{analytic,blender}128{,-fast}.json), its curves in $(PAPER_RUN)/training.png.
-model-paper: build
+model-paper: build $(PAPER_INIT)
 	$(paper_train_data)
 	$(RELEASE)/colf-train $(PAPER_LATE) --data $(PAPER_128)/mix --eval-data $(PAPER_128)/val \
 	  --out $(PAPER_RUN)/p11.safetensors --steps 60000 --lr 5e-5 --warmup 200 --decay-from 40000 \
@@ -552,7 +576,7 @@ model-paper-then-city:
 # adapted to each room set without labels, the paper's curriculum — 64², then 90,000 steps at
 # 128² (its 90,000 iterations) — on unlabelled colf-synth room scenes (the paper's
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
-# attention mask losses as in the default model's stages u1–u4 (without the compositor's, the
+# attention mask losses as in the small model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
 # ROOM_INIT, is make model-paper's p11 after 4,000 steps on clevr567 at 128² (its
 # p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in

@@ -1,8 +1,10 @@
 //! Is it the decoder's design, or the latents it is given, that keeps a scene's renders soft?
 //! `multiview_fit` bounds what any encoding can do: latents and frames fitted to all views.
 //! This goes one step further and frees what the latents choose. For each scene:
-//! 1. **latents**: view 0 encoded in one pass, then latents and frame origins refined on the
-//!    first V views (`refine_slots`, `--latent-steps` steps), as `multiview_fit --views V`;
+//! 1. **latents**: view 0 encoded in one pass (with `--start encoded`: the first V views
+//!    encoded together, the model's default multi-view encoding), then latents and frame
+//!    origins refined on the first V views (`refine_slots`, `--latent-steps` steps), as
+//!    `multiview_fit --views V`;
 //! 2. **free hidden**: each slot's hypernetwork hidden activations (H of them) become free
 //!    parameters instead of the latent that made them: the light field may be anything in the
 //!    H-dimensional affine subspace the hypernetwork's heads span (the background as fitted);
@@ -30,7 +32,7 @@
 //!
 //! Usage: `capacity_fit --data DIR [--model M] [--scenes 3] [--first 0] [--views 4] [--latent-steps 600]
 //! [--free-steps 2000] [--rays 4096] [--lr 3e-4] [--hidden-lr 1e-2] [--heads] [--no-free-fields]
-//! [--wide-latents N] [--latent-lr 1e-2]`
+//! [--wide-latents N] [--latent-lr 1e-2] [--start one-pass|encoded]`
 //! (`--lr` for free weights, `--hidden-lr` for free hidden activations: a hidden unit is
 //! about as large as a latent, a weight two orders smaller).
 
@@ -67,6 +69,9 @@ struct Args {
     /// Extra latent values of the wider-latents stage (0: no such stage).
     wide_latents: usize,
     latent_lr: f64,
+    /// The latents' fit starts from the first views' default encoding (`--start encoded`)
+    /// instead of view 0's one pass.
+    start_encoded: bool,
 }
 
 fn parse_args() -> Result<Args> {
@@ -85,6 +90,7 @@ fn parse_args() -> Result<Args> {
         no_free_fields: false,
         wide_latents: 0,
         latent_lr: 1e-2,
+        start_encoded: false,
     };
     let mut argv = std::env::args().skip(1);
     while let Some(flag) = argv.next() {
@@ -112,11 +118,18 @@ fn parse_args() -> Result<Args> {
             "--hidden-lr" => a.hidden_lr = val.parse().context("--hidden-lr")?,
             "--wide-latents" => a.wide_latents = val.parse().context("--wide-latents")?,
             "--latent-lr" => a.latent_lr = val.parse().context("--latent-lr")?,
+            "--start" => {
+                a.start_encoded = match val.as_str() {
+                    "one-pass" => false,
+                    "encoded" => true,
+                    other => bail!("--start {other}: one-pass or encoded"),
+                }
+            }
             other => bail!("unknown option {other}"),
         }
     }
     if a.data.as_os_str().is_empty() || a.views == 0 || a.rays == 0 {
-        bail!("usage: capacity_fit --data DIR [--model M] [--scenes N] [--views V] [--latent-steps S] [--free-steps S] [--rays R] [--lr LR] [--hidden-lr LR] [--heads] [--wide-latents N] [--latent-lr LR]");
+        bail!("usage: capacity_fit --data DIR [--model M] [--scenes N] [--views V] [--latent-steps S] [--free-steps S] [--rays R] [--lr LR] [--hidden-lr LR] [--heads] [--wide-latents N] [--latent-lr LR] [--start one-pass|encoded]");
     }
     Ok(a)
 }
@@ -356,7 +369,21 @@ fn main() -> Result<()> {
     println!("| --- | ---: | ---: | ---: | ---: |");
     for i in args.first..(args.first + args.scenes).min(data.len()) {
         let scene = data.load(i)?;
-        let codes = fit_latents_to_views(&model, &scene, args.views, args.latent_steps)?;
+        let start = args.start_encoded.then(|| {
+            use clap::Parser;
+            let flags = colf::cli::encode::EncodeArgs::try_parse_from(["colf-encode", "x.png"])
+                .expect("colf-encode's defaults parse");
+            flags
+                .fit
+                .encode_options_for_views(model.config(), None, 0, args.views)
+        });
+        let codes = fit_latents_to_views(
+            &model,
+            &scene,
+            args.views,
+            args.latent_steps,
+            start.as_ref(),
+        )?;
         let views: Vec<InputView> = scene.views[..args.views]
             .iter()
             .map(|v| InputView::new(&v.frame, &v.image))

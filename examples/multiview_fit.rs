@@ -78,7 +78,7 @@ fn main() -> Result<()> {
         let (mut fitted, mut held_out) = (Vec::new(), Vec::new());
         for i in 0..args.scenes.min(data.len()) {
             let scene = data.load(i)?;
-            let codes = fit_latents_to_views(&model, &scene, fit, args.steps)?;
+            let codes = fit_latents_to_views(&model, &scene, fit, args.steps, None)?;
             let prepared = PreparedScene::new(&model, &codes, &scene.name)?;
             for (v, view) in scene.views.iter().enumerate() {
                 let render = prepared.render_frame(&model, &view.frame)?;

@@ -35,8 +35,10 @@ sometimes gives one object two slots that draw it alike; keeping one means an ed
 or deletes it moves or deletes all of it. --redundant 0 keeps every slot.\n\n\
 Unset, --slots, --tries, --refine, --refine-lr and --refine-frame-lr take the model's default \
 encoding (its config's `inference`, written by colf-train configure; a model without one is encoded in one pass with \
-its training slot count). The bundled models' is 12 slots, 4 tries and 50 refinement steps: the \
-most accurate encoding measured (docs/refinement.md; about 1.8 s of CPU an image, docs/speed.md). \
+its training slot count). The bundled default model's is 12 slots, 4 tries and 20 refinement \
+steps of 512 rays, chosen within a CPU budget (about 2.9 s of CPU a 128² image); the \
+supervised and blender models' is 12 slots, 4 tries and 50 steps of 1,024 rays \
+(docs/refinement.md). \
 --fast is the one-pass encoding (the model's training slot count, about 0.03 s an image), for \
 when speed matters more.\n\n\
 Several images of one scene (IMAGE... with --camera, image i seen by --frame's i-th frame, \
@@ -55,7 +57,7 @@ agree on something no slot draws, refined with the rest and kept only where two 
 (--agreed-slots; the step is undone if it draws the views worse), and the slots no view needs \
 dropped (--redundant on the mean error over the views). Each slot's source names the image it \
 came from (`agreed#N` for an added slot). One image gives exactly the codes it always did.\n\n\
-The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
+The model is --model, else $COLF_MODEL, else the default model bundled with colf.",
     after_help = "Examples:\n  colf-encode view_000.png --camera transforms.json -o scene.codes\n  \
 colf-encode photo.png --slots 10 --prune 0.02 -o - | colf-edit --inspect\n  \
 colf-encode view_000.png --camera transforms.json --fast -o scene.codes\n  \

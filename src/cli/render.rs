@@ -43,7 +43,7 @@ A volumetric model (colf-train init --preset volumetric: the uORF-style baseline
 by sampling --samples N points per ray (default: the model's, 64); its EXR ordering channel \
 holds each slot's expected depth along the ray. --frames A..B renders a subset (half-open, like Rust ranges: 0..10 \
 is frames 0 to 9; A.. and ..B work too) so batches can be split across processes.\n\n\
-The model is --model, else $COLF_MODEL, else the small default model bundled with colf.",
+The model is --model, else $COLF_MODEL, else the default model bundled with colf.",
     after_help = "Examples:\n  colf-render scene.codes --cameras transforms.json --out renders/ --masks\n  \
 colf-cameras orbit --frames 36 | colf-render scene.codes --cameras - --out orbit/\n  \
 colf-edit moves.json scene.codes | colf-render --cameras orbit.json --out moved/ --exr"
