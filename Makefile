@@ -438,10 +438,9 @@ model-both: build
 # The paper-sized decoder (issue 37; docs/training.md, "The paper-sized decoder"): the small
 # model (PAPER_INIT: the bundled default until 2026-11-29) grown to the `paper` preset's decoder
 # (light fields 2×256 → 64 features, colour/ordering heads and compositor 3×128; hypernetworks
-# 128 wide) without changing what it
-# computes (`colf-train --init` with `--set`, src/model/grow.rs: new units start with zero
-# outgoing weights, new layers as the identity), then trained on the paper's 128² schedule on a
-# mix of looks without labels. Growing skips the ~88,000 steps of the small model's recipe that
+# 128 wide) without changing what it computes (`colf-train --init` with `--set`,
+# src/model/grow.rs: new units start with zero outgoing weights, new layers as the identity),
+# then trained on the paper's 128² schedule on a mix of looks without labels. Growing skips the ~88,000 steps of the small model's recipe that
 # a fresh paper-sized decoder needs to reach the same point (docs/training-log.md). Runs for days
 # on one core: checkpoints, data and logs live in $(PAPER_RUN), outside the work tree, and
 # re-running resumes where it stopped (nohup, one thread: see docs/training.md). p12 below
@@ -449,7 +448,7 @@ model-both: build
 #
 # p11 is p10 (itself run p2's stages p6–p9 in one) with the paper's 128-value slots: each `--set`
 # below was added by one of those stages or runs, for the reason given beside it, and grows the
-# same from the bundled model all at once. (The machine lost p9 at step ≈ 22,000 and p10 at step
+# same from the small model all at once. (The machine lost p9 at step ≈ 22,000 and p10 at step
 # ≈ 26,400, both on 2026-11-28; docs/training-log.md.)
 PAPER_RUN ?= $(HOME)/colf-runs/paper
 # The small model, taken from the repository's history (the last commit that shipped it as
