@@ -367,16 +367,18 @@ fn main() -> Result<()> {
         println!("| scene | latents fitted | free hidden | free fields | free fields + heads |");
     }
     println!("| --- | ---: | ---: | ---: | ---: |");
+    // `--start encoded`: colf-encode's default encoding of the fitted views, the same for every
+    // scene.
+    let start = args.start_encoded.then(|| {
+        use clap::Parser;
+        let flags = colf::cli::encode::EncodeArgs::try_parse_from(["colf-encode", "x.png"])
+            .expect("colf-encode's defaults parse");
+        flags
+            .fit
+            .encode_options_for_views(model.config(), None, 0, args.views)
+    });
     for i in args.first..(args.first + args.scenes).min(data.len()) {
         let scene = data.load(i)?;
-        let start = args.start_encoded.then(|| {
-            use clap::Parser;
-            let flags = colf::cli::encode::EncodeArgs::try_parse_from(["colf-encode", "x.png"])
-                .expect("colf-encode's defaults parse");
-            flags
-                .fit
-                .encode_options_for_views(model.config(), None, 0, args.views)
-        });
         let codes = fit_latents_to_views(
             &model,
             &scene,
