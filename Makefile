@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city model-city-then-room-diverse resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -556,10 +556,11 @@ model-paper-wide: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with one thread, its
 # output appended to its log. Run it at the start of every session. RESUME_RUNS lists them, one
-# a core: the paper-sized decoder with 384-value slots (p12, which took p11's core at p11's step
-# 40,064; `make model-paper` resumes p11), then the city on that core (model-paper-then-city),
-# and the room-chair run (docs/training-log.md says how the cores are split).
-RESUME_RUNS ?= model-paper-then-city:$(PAPER_RUN)/p12-then-city.log model-room-chair:$(ROOM_RUN)/room-chair.log
+# a core: on one, p12 (finished; the default model), the city, then Room-Diverse
+# (model-city-then-room-diverse); on the other, the room-chair run (docs/training-log.md says
+# how the cores are split).
+RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log \
+  model-room-chair:$(ROOM_RUN)/room-chair.log
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
@@ -571,13 +572,19 @@ model-paper-then-city:
 	$(MAKE) model-paper-wide
 	$(MAKE) model-city CITY_INIT=$(PAPER_RUN)/p12.safetensors
 
+# The same core's queue since 2026-11-29: the city (above), then Room-Diverse from the default
+# model, while the room-chair run holds the other core.
+model-city-then-room-diverse:
+	$(MAKE) model-paper-then-city
+	$(MAKE) model-room-diverse
+
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): a clevr567 model
 # adapted to each room set without labels, the paper's curriculum — 64², then 90,000 steps at
 # 128² (its 90,000 iterations) — on unlabelled colf-synth room scenes (the paper's
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the small model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT, is make model-paper's p11 after 4,000 steps on clevr567 at 128² (its
+# ROOM_INIT for Room-Chair (Room-Diverse's, below, is the default model), is make model-paper's p11 after 4,000 steps on clevr567 at 128² (its
 # p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
 # each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
 # wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
@@ -591,6 +598,8 @@ model-paper-then-city:
 # beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
+# A comma inside a $(call) argument.
+comma := ,
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
 ROOM_INIT ?= $(PAPER_RUN)/p11.step4000.safetensors
 ROOM_SETS := $(PAPER_SETS)
@@ -600,7 +609,9 @@ ROOM_SETS := $(PAPER_SETS)
 ROOM_128_SETS := $(P12_SETS)
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
-# $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset.
+# $(call room_model,PRESET,TRAIN_SCENES,SEED,INIT,SETS_64,SETS_128,HINT): the recipe above for
+# one room preset, from INIT grown with SETS_64 (64² stage) and SETS_128 (128² stage); HINT is
+# what the error says to do when INIT is missing.
 define room_model
 	@mkdir -p $(ROOM_DATA)/$(1)/data $(ROOM_RUN)/$(1)
 	$(call unlabelled_set,$(ROOM_DATA)/$(1)/data/train,$(2),--preset $(1))
@@ -609,26 +620,30 @@ define room_model
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/val128,--preset $(1) --scenes 16 --seed 7 --size 128)
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
 	  --size 128)
-	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
-	  { echo "model-$(1): no initial model at $(ROOM_INIT): run make model-paper to p11's step 4,000, or set ROOM_INIT" >&2; exit 1; }
+	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(4) || \
+	  { echo "model-$(1): no initial model at $(4): $(7)" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
 	  --steps 32000 --lr 5e-5 --warmup 200 --decay-from 24000 --final-lr 1e-5 --seed $(3) \
-	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(ROOM_INIT) $(ROOM_SETS))
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(4) $(5))
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train128 \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128.safetensors \
 	  --steps 90000 --lr 2e-5 --warmup 100 --decay-from 60000 --final-lr 2e-6 --seed $(3) \
-	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors $(ROOM_128_SETS))
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors $(6))
 	$(RELEASE)/colf-train plot $(ROOM_RUN)/$(1)/r64.safetensors.log.jsonl \
 	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl --label 64 --label 128 -o $(ROOM_RUN)/$(1)/training.png
 	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval.json)
 	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval-fast.json,--fast)
 endef
 model-room-chair: build
-	$(call room_model,room-chair,1000,81)
+	$(call room_model,room-chair,1000,81,$(ROOM_INIT),$(ROOM_SETS),$(ROOM_128_SETS),run make model-paper to p11's step 4$(comma)000$(comma) or set ROOM_INIT)
+# Room-Diverse starts from the default model itself (issue 40: "start from the default clevr567
+# model"): since 2026-11-29 that is p12's final model, which already has every one of
+# ROOM_SETS's and ROOM_128_SETS's sizes (384-value slots), so nothing is grown.
+ROOM_DIVERSE_INIT ?= models/default.safetensors
 model-room-diverse: build
-	$(call room_model,room-diverse,5000,82)
+	$(call room_model,room-diverse,5000,82,$(ROOM_DIVERSE_INIT),,,set ROOM_DIVERSE_INIT to a clevr567 model)
 
 # City-Block (issue 39; docs/training.md, "The city model"): the paper's recipe. c0: a static
 # background field pretrained alone on the street (K = 0 slots; the bundled default model's
