@@ -529,6 +529,42 @@ fn a_slot_reach_leaves_out_only_the_far_slots() {
     }
 }
 
+/// Floor features on the background (`floor_fourier_freqs`): its extra input columns, zeros in
+/// the slots' rows, on the shadow lines and on rays off the ground; the same values and
+/// gradients (of the rays' floor columns too when they are differentiable), with slots within
+/// a reach, and on a static background.
+#[test]
+fn floor_features_on_the_background() {
+    let floor = Config {
+        floor_fourier_freqs: 3,
+        ..base()
+    };
+    check_with_rays_off_the_ground(&floor);
+    check(Case {
+        sky: true,
+        ..case(
+            Config {
+                slot_reach: 2.5,
+                ..floor.clone()
+            },
+            5,
+        )
+    });
+    check(Case {
+        sky: true,
+        ..case(
+            Config {
+                zero_background: true,
+                static_background: true,
+                background_reader: false,
+                ray_fourier_freqs: 0,
+                ..floor
+            },
+            3,
+        )
+    });
+}
+
 #[test]
 fn differentiable_rays_as_in_refinement() {
     check(Case {

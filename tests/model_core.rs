@@ -299,6 +299,120 @@ fn a_grown_model_computes_the_same_fields_and_trains_its_new_weights() {
     assert_gradients_reach_every_parameter(replaced);
 }
 
+/// Floor features (`floor_fourier_freqs`) grown on a trained model: the light fields' new input
+/// columns are read with zero weights, so the generated fields and the renders are the same;
+/// training reaches those weights (the background's, through its hypernetwork or its static
+/// field; the slots' floor columns are zeros, so their rows get none); more octaves grow the
+/// same way; fewer, or with other Fourier features, are refused.
+#[test]
+fn floor_features_grow_with_the_same_renders_and_train() {
+    for cfg in [
+        tiny(),
+        Config {
+            static_background: true,
+            ..zero_background_tiny()
+        },
+    ] {
+        let plain = Colf::init(&cfg, 3).unwrap();
+        let floor_cfg = cfg
+            .with_overrides(&["floor_fourier_freqs=3".to_string()])
+            .unwrap();
+        let floor = plain.reconfigured(&floor_cfg, 4, "m").unwrap();
+        let more_cfg = floor_cfg
+            .with_overrides(&["floor_fourier_freqs=5".to_string()])
+            .unwrap();
+        let more = floor.reconfigured(&more_cfg, 5, "m").unwrap();
+        let (before, rays) = prepared_fields(&plain);
+        // The rays meet the floor: the background's floor columns are not all zero.
+        let (in_old, in_new) = (cfg.ray_input_dim(), more_cfg.ray_input_dim());
+        assert_eq!(in_new, in_old + 3 + 4 * 5);
+        let reference = rendered(&plain);
+        for grown in [&floor, &more] {
+            let (after, grown_rays) = prepared_fields(grown);
+            let in_dim = grown.config().ray_input_dim();
+            let coords = grown_rays.coords.flatten_all().unwrap();
+            let coords = coords.to_vec1::<f32>().unwrap();
+            let hits = coords
+                .chunks_exact(in_dim)
+                .take(grown_rays.rays)
+                .filter(|row| row[in_old] == 1.0)
+                .count();
+            assert_eq!(hits, grown_rays.rays, "every ray meets the floor");
+            assert_eq!(rays.rays, grown_rays.rays);
+            // The old inputs' weights are kept; the new inputs' are zero.
+            for (lb, la) in before.layers.iter().zip(&after.layers).take(1) {
+                let old_rows = la.weight.narrow(1, 0, in_old).unwrap();
+                assert!(relative_gap(&lb.weight, &old_rows) < 1e-5);
+                let new_rows = la.weight.narrow(1, in_old, in_dim - in_old).unwrap();
+                assert_eq!(abs_sum(&new_rows), 0.0);
+            }
+            for (lb, la) in before.layers.iter().zip(&after.layers).skip(1) {
+                for (tb, ta) in [(&lb.weight, &la.weight), (&lb.bias, &la.bias)] {
+                    assert!(
+                        relative_gap(tb, ta) < 1e-5,
+                        "generated light fields changed"
+                    );
+                }
+            }
+            for (a, b) in reference.iter().zip(&rendered(grown)) {
+                let gap = relative_gap(a, b);
+                assert!(gap < 1e-6, "renders changed: {gap}");
+            }
+        }
+        let grads = assert_gradients_reach_every_parameter(more);
+        let grad = |name: &str| grads.iter().find(|(n, _)| n == name).unwrap().1.clone();
+        // A layer-0 weight (generated or static) laid out as [in, out, …]: the new inputs' part.
+        let new_rows = |g: &Tensor| {
+            let per_input = g.elem_count() / in_new;
+            g.reshape((in_new, per_input))
+                .unwrap()
+                .narrow(0, in_old, in_new - in_old)
+                .unwrap()
+        };
+        let background = if cfg.static_background {
+            new_rows(&grad("background_field.layers.0.weight"))
+        } else {
+            new_rows(&grad("hypernet_bg.layers.0.weight.weight"))
+        };
+        assert!(
+            abs_sum(&background) > 0.0,
+            "the floor weights get no gradient"
+        );
+        let slots = new_rows(&grad("hypernet_fg.layers.0.weight.weight"));
+        assert_eq!(
+            abs_sum(&slots),
+            0.0,
+            "the slots' floor columns are not zeros"
+        );
+        // Fewer octaves, or floor features with other Fourier features, are refused.
+        let err = refused_growth(&more_cfg, "floor_fourier_freqs=3");
+        assert!(err.contains("floor_fourier_freqs"), "{err}");
+        let err = refused_growth(&more_cfg, "floor_fourier_freqs=0");
+        assert!(err.contains("floor_fourier_freqs"), "{err}");
+        let both = format!("ray_fourier_freqs={}", cfg.ray_fourier_freqs + 1);
+        let to = more_cfg.with_overrides(&[both]).unwrap();
+        assert!(floor.reconfigured(&to, 4, "m").is_err());
+        // Configuring (the same tensors' shapes) cannot add them.
+        assert!(plain
+            .configured(&["floor_fourier_freqs=3".to_string()])
+            .is_err());
+    }
+}
+
+/// A model file written before `floor_fourier_freqs` existed reads with the setting off, and
+/// its config serialises without the key, so its identity recomputed from the re-serialised
+/// config is the one it carries.
+#[test]
+fn a_bundled_model_keeps_its_identity_without_floor_features() {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/supervised.safetensors");
+    let model = Colf::load(&path).unwrap();
+    assert_eq!(model.config().floor_fourier_freqs, 0);
+    assert!(!model.config().to_json().contains("floor_fourier_freqs"));
+    let carried = model.identity().unwrap();
+    assert_eq!(model.into_trainable().unwrap().identity().unwrap(), carried);
+}
+
 /// Per-layer hypernetwork hidden layers (`hypernet_per_layer`): grown from a shared one they
 /// render the same, each layer then has hidden units of its own that train, they widen like a
 /// shared one, and they cannot be merged back.

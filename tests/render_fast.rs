@@ -58,12 +58,34 @@ fn compare(cfg: &Config, k: usize, rays: usize, tol_order: f32) {
 }
 
 fn compare_model(model: &Colf, k: usize, rays: usize, tol_order: f32) {
+    compare_on(model, scene(k, rays), tol_order);
+}
+
+/// [`scene`] with some rays that miss the floor: every third looks up, every seventh runs
+/// level (the floor features are zero on them, written over whatever the scratch held).
+fn scene_with_sky(k: usize, n: usize) -> (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>) {
+    let (frames, origins, mut dirs) = scene(k, n);
+    for (i, d) in dirs.iter_mut().enumerate() {
+        if i % 3 == 1 {
+            d.z = -d.z;
+        } else if i % 7 == 5 {
+            d.z = 0.0;
+        }
+    }
+    (frames, origins, dirs)
+}
+
+fn compare_on(
+    model: &Colf,
+    (frames, origins, dirs): (Vec<DMat4>, Vec<DVec3>, Vec<DVec3>),
+    tol_order: f32,
+) {
     let cfg = model.config();
+    let (k, rays) = (frames.len(), origins.len());
     let d = cfg.slot_dim;
     let latents: Vec<Vec<f32>> = (0..k).map(|i| noise(d, 10 + i as u64)).collect();
     let bg = noise(d, 7);
     let prepared = model.prepare(&latents, &bg).unwrap();
-    let (frames, origins, dirs) = scene(k, rays);
     let slow = model
         .render_rays(&prepared, &frames, &origins, &dirs)
         .unwrap();
@@ -115,6 +137,52 @@ fn light_field_with_fourier_features_matches_candle() {
         .with_overrides(&["ray_fourier_freqs=4".into(), "head_hidden_layers=2".into()])
         .unwrap();
     compare(&cfg, 4, 513, 2e-3);
+}
+
+/// Floor features on the background (its extra input columns; zeros in the slots' rows, on the
+/// shadow lines and on rays that miss the floor): the fast renderer, which encodes into a
+/// reused scratch buffer, must write every floor column of every row. The fresh model's
+/// generated weights on those columns are not zero, in the slots' fields too, so a stale
+/// value anywhere changes a colour. Several chunks of rays, with and without Fourier features
+/// and shadow lines.
+#[test]
+fn light_field_with_floor_features_matches_candle() {
+    for extra in [
+        &[][..],
+        &[
+            "ray_fourier_freqs=2",
+            "shadow_head=true",
+            "shadow_light=[30, 55]",
+        ][..],
+    ] {
+        let mut overrides = vec!["floor_fourier_freqs=5".to_string()];
+        overrides.extend(extra.iter().map(|s| s.to_string()));
+        let cfg = Config::small().with_overrides(&overrides).unwrap();
+        let mut model = Colf::init(&cfg, 3).unwrap();
+        if cfg.shadow_head {
+            // Shadows that read the features (a fresh head's weights are zero), as in
+            // `light_field_with_shadows_matches_candle`: a stale shadow-line row shows.
+            let w: Vec<f32> = noise(cfg.lfn_features, 5)
+                .iter()
+                .map(|v| 0.03 * v)
+                .collect();
+            let (dev, n) = (candle_core::Device::Cpu, cfg.lfn_features);
+            let bias = candle_core::Tensor::new(&[-0.1f32], &dev).unwrap();
+            let weight = candle_core::Tensor::from_vec(w, (1, n), &dev).unwrap();
+            model = model.with_tensor("heads.shadow.bias", bias).unwrap();
+            model = model.with_tensor("heads.shadow.weight", weight).unwrap();
+        }
+        // On one thread of a pool of its own, every chunk after the first reuses the scratch
+        // (called from outside a pool, rayon may give each chunk a fresh one).
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            compare_on(&model, scene_with_sky(4, 1100), 2e-3);
+            compare_on(&model, scene_with_sky(0, 300), 2e-3);
+        });
+    }
 }
 
 #[test]

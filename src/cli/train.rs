@@ -193,7 +193,9 @@ pub struct RunArgs {
     /// `compositor_hidden` or `compositor_hidden_layers` — e.g. the small decoder grown to the
     /// paper's —, `--set hypernet_per_layer=true` for a hidden layer per light-field layer in
     /// each hypernetwork, a wider `slot_dim` (see --slot-values), `--set
-    /// zero_background=false` for a background that reads the image; new
+    /// zero_background=false` for a background that reads the image, more
+    /// `floor_fourier_freqs` — e.g. `--set floor_fourier_freqs=5`, the background's features of
+    /// where a ray meets the floor z = 0, read with zero weights at first; new
     /// weights drawn from --seed); ignored with --resume.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub config_overrides: Vec<String>,

@@ -1304,15 +1304,22 @@ mod tests {
 
     /// The one-pass contraction of the encoded lines' gradient against the written-out
     /// derivatives (`HostRays::frame_derivatives` through `Linearised`), for rotated frames,
-    /// Fourier features, shadow lines, lines near and far, and the slots' own line scale.
+    /// Fourier features, shadow lines, lines near and far, the slots' own line scale and floor
+    /// features.
     #[test]
     fn moving_lines_give_the_gradient_of_the_written_out_derivatives() {
-        for slot_scale in ["slot_scale=0", "slot_scale=1.5"] {
+        // And with the background's floor columns after the lines' (`floor_fourier_freqs`).
+        for (slot_scale, floor) in [
+            ("slot_scale=0", "floor_fourier_freqs=0"),
+            ("slot_scale=1.5", "floor_fourier_freqs=0"),
+            ("slot_scale=0", "floor_fourier_freqs=3"),
+        ] {
             let overrides = [
                 "ray_fourier_freqs=4",
                 "shadow_head=true",
                 "shadow_light=[30, 55]",
                 slot_scale,
+                floor,
             ]
             .map(String::from);
             moving_lines_match(&Config::small().with_overrides(&overrides).unwrap());

@@ -8,6 +8,14 @@ fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
+fn is_zero_count(v: &usize) -> bool {
+    *v == 0
+}
+
+/// The most octaves `floor_fourier_freqs` may ask for: the finest period is then 2^(1−L) =
+/// 2⁻¹¹ world units, far below a pixel of any scene colf renders.
+pub const MAX_FLOOR_FOURIER_FREQS: usize = 12;
+
 /// Every size and knob of a COLF model. Unknown keys are refused when a checkpoint is read, so
 /// a file written by a newer colf with new knobs is reported instead of silently misread.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -42,6 +50,19 @@ pub struct Config {
     pub lfn_features: usize,
     /// Fourier frequencies per ray coordinate (0: the raw 6-D Plücker ray is the input).
     pub ray_fourier_freqs: usize,
+    /// Floor features of the background light field (0 = none): octaves L of sin/cos of the
+    /// point where a camera ray meets the floor plane z = 0 (world +Z up). The background
+    /// cannot draw a high-frequency floor texture (parquet, tiles) from the ray's Plücker
+    /// coordinates alone; these give it the texture's coordinates directly. The background's
+    /// input gains 3 + 4·L columns after the Plücker coordinates and their Fourier features: a
+    /// hit flag, the hit point's (x, y)/`scene_scale` bounded as the moment is, and sin/cos of
+    /// 2^k·π·x and 2^k·π·y for k < L, x and y in world units (periods 2, 1, ½, … world units;
+    /// see `rays.rs`). All zero on a ray that does not meet the floor ahead of its origin, and
+    /// in every foreground slot's input and every shadow line. Light-field models only; a model
+    /// grows to it with unchanged renders (zero weights on the new inputs). Absent in older
+    /// files (= 0), and not written when 0, so their identity is unchanged.
+    #[serde(default, skip_serializing_if = "is_zero_count")]
+    pub floor_fourier_freqs: usize,
     /// Hidden width of the hypernetworks (one hidden layer).
     pub hypernet_hidden: usize,
     /// Hidden width of the colour and ordering heads.
@@ -341,6 +362,7 @@ impl Config {
             lfn_hidden_layers: 2,
             lfn_features: 32,
             ray_fourier_freqs: 0,
+            floor_fourier_freqs: 0,
             hypernet_hidden: 64,
             head_hidden: 64,
             head_hidden_layers: 1,
@@ -580,6 +602,15 @@ impl Config {
         {
             bail!("model config: `slot_reach` must be a positive distance, and applies to light-field models only");
         }
+        if self.floor_fourier_freqs > MAX_FLOOR_FOURIER_FREQS {
+            bail!(
+                "model config: `floor_fourier_freqs` is at most {MAX_FLOOR_FOURIER_FREQS} (asked: {})",
+                self.floor_fourier_freqs
+            );
+        }
+        if self.floor_fourier_freqs > 0 && self.is_volumetric() {
+            bail!("model config: `floor_fourier_freqs` applies to light-field models, not the volumetric baseline");
+        }
         if let Some(v) = &self.volumetric {
             if self.shadow_head {
                 bail!("model config: `shadow_head` applies to light-field models, not the volumetric baseline");
@@ -624,9 +655,24 @@ impl Config {
         self.encoder_size / self.encoder_first_stride
     }
 
-    /// Input size of a light field: 6 Plücker coordinates, plus sin/cos per frequency.
+    /// Input size of a light field: 6 Plücker coordinates, plus sin/cos per frequency, plus
+    /// the floor columns ([`Config::floor_input_dim`]). One width for every field: the
+    /// foreground slots' floor columns are zeros.
     pub fn ray_input_dim(&self) -> usize {
+        self.line_input_dim() + self.floor_input_dim()
+    }
+
+    /// The columns of a light field's input that encode the line: 6 Plücker coordinates, plus
+    /// sin/cos per frequency (`ray_fourier_freqs`). The floor columns follow them.
+    pub fn line_input_dim(&self) -> usize {
         6 * (1 + 2 * self.ray_fourier_freqs)
+    }
+
+    /// The floor columns at the end of a light field's input (`floor_fourier_freqs` = L): none
+    /// when L = 0, else a hit flag, the bounded hit point (x, y) and sin/cos of x and y at L
+    /// octaves, 3 + 4·L.
+    pub fn floor_input_dim(&self) -> usize {
+        floor_columns(self.floor_fourier_freqs)
     }
 
     /// The heads' MLPs: (hidden width, hidden layers).
@@ -645,6 +691,15 @@ impl Config {
         dims.extend(std::iter::repeat_n(self.lfn_hidden, self.lfn_hidden_layers));
         dims.push(self.lfn_features);
         dims
+    }
+}
+
+/// The floor columns for `freqs` octaves ([`Config::floor_input_dim`]).
+pub fn floor_columns(freqs: usize) -> usize {
+    if freqs == 0 {
+        0
+    } else {
+        3 + 4 * freqs
     }
 }
 
@@ -868,6 +923,49 @@ mod tests {
         }
         let volumetric = Config {
             slot_reach: 3.0,
+            ..Config::volumetric()
+        };
+        assert!(volumetric.validate().is_err());
+    }
+
+    /// Floor features widen the input by 3 + 4·L and nothing else; a config without them writes
+    /// no key (older files keep their JSON and identity), one with them round-trips; more than
+    /// the cap, or on a volumetric model, is refused.
+    #[test]
+    fn floor_fourier_freqs_widen_the_input_and_are_absent_from_json_when_off() {
+        let small = Config::small();
+        assert_eq!(small.floor_input_dim(), 0);
+        assert!(!small.to_json().contains("floor_fourier_freqs"));
+        // An older file's JSON (without the key) reads back to the same config and JSON.
+        let json = small.to_json();
+        let read = Config::from_json(&json).unwrap();
+        assert_eq!(read, small);
+        assert_eq!(read.to_json(), json);
+        let floor = small
+            .with_overrides(&["floor_fourier_freqs=5".into()])
+            .unwrap();
+        assert_eq!(floor.floor_fourier_freqs, 5);
+        assert_eq!(floor.floor_input_dim(), 23);
+        assert_eq!(floor.lfn_dims(), vec![6 + 23, 128, 128, 32]);
+        let both = Config {
+            ray_fourier_freqs: 2,
+            ..floor.clone()
+        };
+        assert_eq!(both.line_input_dim(), 30);
+        assert_eq!(both.ray_input_dim(), 30 + 23);
+        assert!(floor.to_json().contains("\"floor_fourier_freqs\":5"));
+        assert_eq!(Config::from_json(&floor.to_json()).unwrap(), floor);
+        assert!(small
+            .with_overrides(&[format!(
+                "floor_fourier_freqs={}",
+                MAX_FLOOR_FOURIER_FREQS + 1
+            )])
+            .is_err());
+        assert!(small
+            .with_overrides(&[format!("floor_fourier_freqs={MAX_FLOOR_FOURIER_FREQS}")])
+            .is_ok());
+        let volumetric = Config {
+            floor_fourier_freqs: 2,
             ..Config::volumetric()
         };
         assert!(volumetric.validate().is_err());

@@ -25,6 +25,10 @@
 //!   the reader's latent, which differs from image to image.
 //! - wider `lfn_features`: the fields' new features are fresh, and the heads read them with zero
 //!   weights;
+//! - more `floor_fourier_freqs`: the light fields' new input columns (the background's floor
+//!   features, appended after all the old columns) are read with zero weights (the heads'
+//!   rows that generate them, or the static background field's), so the renders are the same
+//!   and the gradient of those weights is the floor features times the layer's;
 //! - wider or deeper heads and compositor (`head_hidden`, `head_hidden_layers`,
 //!   `compositor_hidden`, `compositor_hidden_layers`): new hidden units as above, new hidden
 //!   layers inserted before the output layer as the identity on the old units (exact after a
@@ -247,6 +251,11 @@ fn grow_rest(
             old.compositor_hidden_layers,
             cfg.compositor_hidden_layers,
         ),
+        (
+            "floor_fourier_freqs",
+            old.floor_fourier_freqs,
+            cfg.floor_fourier_freqs,
+        ),
     ] {
         if to < from {
             bail!("{name}: `{key}` can grow ({from} → more), not shrink");
@@ -268,8 +277,10 @@ fn grow_rest(
         if cfg.lfn_hidden_layers != old.lfn_hidden_layers
             || cfg.ray_fourier_freqs != old.ray_fourier_freqs
         {
-            bail!("{name}: `lfn_hidden` and `lfn_features` grow only with the same `lfn_hidden_layers` and `ray_fourier_freqs`");
+            bail!("{name}: `lfn_hidden`, `lfn_features` and `floor_fourier_freqs` grow only with the same `lfn_hidden_layers` and `ray_fourier_freqs`");
         }
+        // More `floor_fourier_freqs` appends input columns after all the old ones (the floor
+        // columns are last, their octaves in order): zero rows, the same function.
         let grow = LayerGrowth {
             old_dims: old.lfn_dims(),
             new_dims: cfg.lfn_dims(),

@@ -12,6 +12,13 @@
 //!   object, |m̂| < 1 always, so a camera 10⁴ units away or a slot moved 10⁴ units away gives
 //!   finite, bounded inputs (such rays pass far from the slot and all look alike to it);
 //! - optional Fourier features sin/cos(2^k·π·x) of the 6 coordinates (`ray_fourier_freqs`);
+//! - with `floor_fourier_freqs` = L > 0, the background's floor columns after those
+//!   ([`encode_floor`]): where the camera ray meets the floor plane z = 0 ahead of its origin
+//!   at (x, y), a hit flag 1, (x, y)/s bounded as the moment is (s = `scene_scale`), then
+//!   sin/cos(2^k·π·x), sin/cos(2^k·π·y) for k < L with x, y in world units (periods
+//!   2^(1−k) world units, whatever `scene_scale`: a floor's texture has a size in the world);
+//!   zeros on a ray that misses the floor, and in the foreground slots' rows and every shadow
+//!   line (one input width for every field);
 //! - the shift dot(t − o, d): where the point of the ray closest to the slot's frame origin lies
 //!   along the ray, measured from the ray's origin. The light field only sees the line, so its
 //!   ordering value can only be measured from that closest point; adding the shift turns it into
@@ -32,7 +39,7 @@ use super::config::Config;
 use super::decode_kernel::RayMotion;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
-use glam::{DMat4, DVec3};
+use glam::{DMat4, DVec2, DVec3};
 use rayon::prelude::*;
 use std::sync::Arc;
 
@@ -128,6 +135,48 @@ fn write_fourier_features(out: &mut [f32], p: &[f64; 6], freqs: usize) {
     }
 }
 
+/// Writes the floor columns of a light field's input (`Config::floor_input_dim` values, for
+/// `freqs` = `Config::floor_fourier_freqs` octaves) to `out`: for a `ray` (o, d) that meets
+/// the floor plane z = 0 ahead of its origin ([`ground_point`]) at (x, y), a hit flag 1, then
+/// p̂ = p/√(1 + |p|²) for p = (x, y)/`scene_scale` (bounded as the Plücker moment is), then for
+/// k < `freqs`: sin(2^k·π·x), cos(2^k·π·x), sin(2^k·π·y), cos(2^k·π·y), x and y in world
+/// units. Every column is written: zeros when `ray` is None (a foreground slot, a shadow line)
+/// or misses the floor, so a reused buffer keeps nothing stale.
+pub fn encode_floor(out: &mut [f32], ray: Option<(DVec3, DVec3)>, scene_scale: f64, freqs: usize) {
+    debug_assert_eq!(out.len(), super::config::floor_columns(freqs));
+    let Some(hit) = ray
+        .and_then(|(o, d)| ground_point(o, d))
+        .filter(|_| freqs > 0)
+    else {
+        out.fill(0.0);
+        return;
+    };
+    let p = DVec2::new(hit.x, hit.y) / scene_scale;
+    let p = p / (1.0 + p.length_squared()).sqrt();
+    out[0] = 1.0;
+    out[1] = p.x as f32;
+    out[2] = p.y as f32;
+    for (c, v) in [hit.x, hit.y].into_iter().enumerate() {
+        // As `write_fourier_features`: one sin/cos, then the double-angle formulas in f64.
+        let (mut sin, mut cos) = (std::f64::consts::PI * v).sin_cos();
+        for k in 0..freqs {
+            out[3 + 4 * k + 2 * c] = sin as f32;
+            out[4 + 4 * k + 2 * c] = cos as f32;
+            (sin, cos) = (2.0 * sin * cos, 1.0 - 2.0 * sin * sin);
+        }
+    }
+}
+
+/// Where the ray (o, d) meets the ground plane z = 0 ahead of its origin: None unless the
+/// origin is above the plane and the ray points down (and the point is finite).
+pub fn ground_point(o: DVec3, d: DVec3) -> Option<DVec3> {
+    if !(o.z > 0.0 && d.z < 0.0) {
+        return None;
+    }
+    let ground = o + d * (-o.z / d.z);
+    ground.is_finite().then_some(ground)
+}
+
 /// The unit vector toward a light at [azimuth, elevation] degrees (azimuth from +X toward +Y,
 /// elevation above the ground plane; world +Z up).
 pub fn light_direction([azimuth, elevation]: [f64; 2]) -> DVec3 {
@@ -142,11 +191,7 @@ pub fn light_direction([azimuth, elevation]: [f64; 2]) -> DVec3 {
 /// −`to_light`): oriented from the light down to the ground, as the camera rays the light fields
 /// were trained on look down at the scene. None when the ray does not meet the ground ahead.
 pub fn shadow_line(o: DVec3, d: DVec3, to_light: DVec3) -> Option<(DVec3, DVec3)> {
-    if !(o.z > 0.0 && d.z < 0.0) {
-        return None;
-    }
-    let ground = o + d * (-o.z / d.z);
-    ground.is_finite().then_some((ground, -to_light))
+    ground_point(o, d).map(|ground| (ground, -to_light))
 }
 
 /// Whether a line encoded as `encoded` (its [`encode_line`] values in a slot's frame) passes
@@ -279,6 +324,7 @@ impl HostRays {
                 &frames,
                 &camera_lines,
                 cfg.slot_reach_bound(),
+                true,
             );
             // 4. With shadows, the rays' shadow lines the same way.
             if let Some((shadow_coords, on_ground)) = shadow.as_mut() {
@@ -296,7 +342,14 @@ impl HostRays {
                     })
                     .collect();
                 let scene_lines = &mut shadow_coords[bi * per_scene..(bi + 1) * per_scene];
-                encode_fields(cfg, scene_lines, &frames, &lines, cfg.shadow_reach_bound());
+                encode_fields(
+                    cfg,
+                    scene_lines,
+                    &frames,
+                    &lines,
+                    cfg.shadow_reach_bound(),
+                    false,
+                );
             }
             // 5. The ordering shifts that make slots in different frames comparable.
             for (ri, &(o, d)) in camera_lines.iter().enumerate() {
@@ -323,7 +376,7 @@ impl HostRays {
 /// is tested against.
 #[derive(Clone, Debug)]
 pub struct FrameDerivatives {
-    /// ∂coords/∂t_axis [B·S, R, in] (0 for the background).
+    /// ∂coords/∂t_axis [B·S, R, in] (0 for the background, and for the floor columns).
     pub coords: Vec<f32>,
     /// ∂(shadow lines)/∂t_axis, with `Config::shadow_light`.
     pub shadow_lines: Option<Vec<f32>>,
@@ -502,23 +555,34 @@ fn batch_shape(scenes: &[SceneRays]) -> Result<(usize, usize, usize)> {
 
 /// Encodes `lines` in each field's frame (`frames`: world-to-field and origin) into `dest`,
 /// field-major [S, R, in_dim]; fields in parallel. A foreground field's line beyond `reach`
-/// (the bound of [`encode_line`]) gets no Fourier features: no decoder reads them.
+/// (the bound of [`encode_line`]) gets no Fourier features: no decoder reads them. The floor
+/// columns ([`encode_floor`]) hold the background's floor features when `camera` (the lines
+/// are camera rays), else zeros, as every foreground field's.
 fn encode_fields(
     cfg: &Config,
     dest: &mut [f32],
     frames: &[(DMat4, DVec3)],
     lines: &[(DVec3, DVec3)],
     reach: Option<f32>,
+    camera: bool,
 ) {
     let in_dim = cfg.ray_input_dim();
+    let line_dim = cfg.line_input_dim();
     dest.par_chunks_mut(lines.len() * in_dim)
         .zip(frames.par_iter())
         .enumerate()
         .for_each(|(f, (field, (inv, _)))| {
             let scale = cfg.line_scale(f);
             let bound = if f > 0 { reach } else { None };
+            let floor = camera && f == 0;
             for (out, (o, d)) in field.chunks_exact_mut(in_dim).zip(lines) {
                 encode_line(out, inv, (*o, *d), scale, cfg.ray_fourier_freqs, bound);
+                encode_floor(
+                    &mut out[line_dim..],
+                    floor.then_some((*o, *d)),
+                    scale,
+                    cfg.floor_fourier_freqs,
+                );
             }
         });
 }
@@ -620,8 +684,15 @@ mod tests {
     #[test]
     fn frame_derivatives_match_forward_differences() {
         // And with the slots' own line scale.
-        for (from_nearest, slot_scale) in [(false, 0.0), (true, 0.0), (false, 1.5)] {
+        // And with the background's floor columns (world frame: they never move).
+        for (from_nearest, slot_scale, floor) in [
+            (false, 0.0, 0),
+            (true, 0.0, 0),
+            (false, 1.5, 0),
+            (true, 0.0, 2),
+        ] {
             let mut cfg = Config::small();
+            cfg.floor_fourier_freqs = floor;
             cfg.ray_fourier_freqs = 3;
             cfg.fg_locality = 2.0;
             cfg.shadow_head = true;
@@ -937,6 +1008,102 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// The background's floor columns at a hand-computed floor hit are the flag, the bounded
+    /// (x, y)/s and direct sin/cos of 2^k·π·x and 2^k·π·y; zero on rays that look up, run
+    /// level or start below the floor, in the slots' rows and in every shadow line; the line
+    /// columns before them are those of the model without floor features.
+    #[test]
+    fn floor_features_match_direct_sin_cos_at_the_floor_hit() {
+        const L: usize = 5;
+        let cfg = Config {
+            ray_fourier_freqs: 2,
+            floor_fourier_freqs: L,
+            shadow_head: true,
+            shadow_light: Some([30.0, 55.0]),
+            ..Config::small()
+        };
+        let frames = [DMat4::from_translation(DVec3::new(0.3, -0.2, 0.5))];
+        let origins = [
+            DVec3::new(1.0, 2.0, 6.0),   // meets the floor at (2.5, 2, 0)
+            DVec3::new(-3.0, 0.25, 4.0), // meets the floor at (1, −1.75, 0)
+            DVec3::new(0.0, 0.0, 5.0),   // looks up
+            DVec3::new(0.0, 0.0, 5.0),   // runs level
+            DVec3::new(0.5, 0.5, -1.0),  // starts below the floor, looks down
+        ];
+        let dirs = [
+            DVec3::new(0.5, 0.0, -2.0),
+            DVec3::new(1.0, -0.5, -1.0),
+            DVec3::new(1.0, 0.0, 0.2),
+            DVec3::X,
+            DVec3::NEG_Z,
+        ];
+        let hits = [Some((2.5, 2.0)), Some((1.0, -1.75)), None, None, None];
+        let rays = host_rays(&cfg, &frames, &origins, &dirs);
+        let (in_dim, line_dim) = (cfg.ray_input_dim(), cfg.line_input_dim());
+        assert_eq!(in_dim - line_dim, 3 + 4 * L);
+        let r = origins.len();
+        let row = |buf: &[f32], field: usize, ri: usize| -> Vec<f32> {
+            buf[(field * r + ri) * in_dim..(field * r + ri + 1) * in_dim].to_vec()
+        };
+        for (ri, hit) in hits.iter().enumerate() {
+            let floor = row(&rays.coords, 0, ri)[line_dim..].to_vec();
+            match hit {
+                Some((x, y)) => {
+                    let s = cfg.scene_scale;
+                    let n = (1.0 + (x / s).powi(2) + (y / s).powi(2)).sqrt();
+                    let mut expected = vec![1.0, x / s / n, y / s / n];
+                    for k in 0..L {
+                        let w = (1u64 << k) as f64 * std::f64::consts::PI;
+                        let (sx, cx) = (w * x).sin_cos();
+                        let (sy, cy) = (w * y).sin_cos();
+                        expected.extend([sx, cx, sy, cy]);
+                    }
+                    for (c, (got, want)) in floor.iter().zip(&expected).enumerate() {
+                        assert!(
+                            (*got as f64 - want).abs() < 1e-6,
+                            "ray {ri}, column {c}: {got} vs {want}"
+                        );
+                    }
+                }
+                None => assert!(floor.iter().all(|v| *v == 0.0), "ray {ri}: {floor:?}"),
+            }
+            // The slot's floor columns are zero; so are every shadow line's.
+            assert!(row(&rays.coords, 1, ri)[line_dim..]
+                .iter()
+                .all(|v| *v == 0.0));
+            let (lines, _) = rays.shadow_lines.as_ref().unwrap();
+            for field in 0..2 {
+                assert!(row(lines, field, ri)[line_dim..].iter().all(|v| *v == 0.0));
+            }
+        }
+        // The line columns are the model's without floor features, to the bit.
+        let plain = Config {
+            floor_fourier_freqs: 0,
+            ..cfg.clone()
+        };
+        let without = host_rays(&plain, &frames, &origins, &dirs);
+        for field in 0..2 {
+            for ri in 0..r {
+                let at = (field * r + ri) * line_dim;
+                assert_eq!(
+                    &row(&rays.coords, field, ri)[..line_dim],
+                    &without.coords[at..at + line_dim]
+                );
+            }
+        }
+        assert_eq!(rays.shift, without.shift);
+        // A reused buffer: every column is written, a miss included.
+        let mut out = vec![f32::NAN; 3 + 4 * L];
+        encode_floor(&mut out, Some((origins[2], dirs[2])), 8.0, L);
+        assert!(out.iter().all(|v| *v == 0.0));
+        out.fill(f32::NAN);
+        encode_floor(&mut out, None, 8.0, L);
+        assert!(out.iter().all(|v| *v == 0.0));
+        // The hit point itself.
+        let hit = ground_point(origins[1], dirs[1]).unwrap();
+        assert!(hit.abs_diff_eq(DVec3::new(1.0, -1.75, 0.0), 1e-12));
     }
 
     #[test]

@@ -30,7 +30,7 @@
 
 use crate::model::heads::shadow_host;
 use crate::model::rays::{
-    encode_line, light_direction, plucker_in_frame, shadow_line, within_reach,
+    encode_floor, encode_line, light_direction, plucker_in_frame, shadow_line, within_reach,
 };
 use crate::model::{Colf, Config, PreparedSlots, RayBatch, RayOutput, SceneRays};
 use anyhow::{anyhow, bail, Context, Result};
@@ -171,7 +171,11 @@ struct LightFieldHost {
     scene_scale: f64,
     freqs: usize,
     in_dim: usize,
-    /// The model's config with Fourier features off, for the shifts of `RayBatch`.
+    /// `Config::floor_fourier_freqs`, and where the floor columns start in a row
+    /// (`Config::line_input_dim`).
+    floor_freqs: usize,
+    line_dim: usize,
+    /// The model's config with Fourier and floor features off, for the shifts of `RayBatch`.
     shift_cfg: Config,
     /// `Config::slot_reach_bound`: a foreground slot is absent on the rays beyond it.
     slot_reach: Option<f32>,
@@ -301,9 +305,12 @@ impl LightFieldHost {
             scene_scale: cfg.scene_scale,
             freqs: cfg.ray_fourier_freqs,
             in_dim: cfg.ray_input_dim(),
+            floor_freqs: cfg.floor_fourier_freqs,
+            line_dim: cfg.line_input_dim(),
             slot_reach: cfg.slot_reach_bound(),
             shift_cfg: Config {
                 ray_fourier_freqs: 0,
+                floor_fourier_freqs: 0,
                 shadow_light: None,
                 shadow_reach: 0.0,
                 ..cfg.clone()
@@ -833,6 +840,8 @@ impl FastRenderer {
                     let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
                     // A line beyond the slot's reach casts nothing: not evaluated.
                     if encode_line(out, inv, (o, d), line_scale, lf.freqs, sh.reach) {
+                        // Shadow lines have no floor features: zeros over the scratch.
+                        encode_floor(&mut out[lf.line_dim..], None, line_scale, lf.floor_freqs);
                         sc.lit_rows.push(ri);
                     }
                 }
@@ -850,16 +859,18 @@ impl FastRenderer {
         if m == 0 {
             return Ok(());
         }
-        // Bounded Plücker coordinates and Fourier features, as `RayBatch`; the field.
+        // Bounded Plücker coordinates and Fourier features, as `RayBatch`, then the floor
+        // columns: the background's floor features, zeros for a slot. Every column of every
+        // row is written: `sc.a` holds the last field's activations.
         for (j, &ri) in sc.rows.iter().enumerate() {
             let out = &mut sc.a[j * in_dim..(j + 1) * in_dim];
-            encode_line(
-                out,
-                inv,
-                (origins[ri], dirs[ri]),
+            let ray = (origins[ri], dirs[ri]);
+            encode_line(out, inv, ray, line_scale, lf.freqs, None);
+            encode_floor(
+                &mut out[lf.line_dim..],
+                (si == 0).then_some(ray),
                 line_scale,
-                lf.freqs,
-                None,
+                lf.floor_freqs,
             );
         }
         let x_w = lf.run_field(si, m, sc);
