@@ -372,7 +372,7 @@ impl Trainer {
                             slot_values: opts.slot_values,
                         };
                         colf.grown(&cfg, growth, &p.display().to_string())
-                            .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden, lfn_hidden or slot_dim, hypernet_per_layer)")?
+                            .context("a config change of an initial model may only keep every tensor's shape or grow the model (static_background, zero_background=false, shadow_head, a wider hypernet_hidden, lfn_hidden or slot_dim, hypernet_per_layer, more floor_fourier_freqs)")?
                     }
                 }
                 None => {
