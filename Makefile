@@ -583,9 +583,9 @@ model-city-then-room-diverse:
 # 128² (its 90,000 iterations) — on unlabelled colf-synth room scenes (the paper's
 # 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
 # attention mask losses as in the small model's stages u1–u4 (without the compositor's, the
-# background, which reads the image, drew the chairs: docs/training-log.md). The start,
-# ROOM_INIT for Room-Chair (Room-Diverse's, below, is the default model), is make model-paper's p11 after 4,000 steps on clevr567 at 128² (its
-# p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
+# background, which reads the image, drew the chairs: docs/training-log.md). Room-Chair's
+# start, ROOM_INIT (Room-Diverse's, below, is the default model), is make model-paper's p11
+# after 4,000 steps on clevr567 at 128² (its p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
 # each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
 # wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
 # model grown, the earlier start, must first learn its new units. Held-out: 16 validation scenes
