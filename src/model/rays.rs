@@ -144,10 +144,12 @@ fn write_fourier_features(out: &mut [f32], p: &[f64; 6], freqs: usize) {
 /// or misses the floor, so a reused buffer keeps nothing stale.
 pub fn encode_floor(out: &mut [f32], ray: Option<(DVec3, DVec3)>, scene_scale: f64, freqs: usize) {
     debug_assert_eq!(out.len(), super::config::floor_columns(freqs));
-    let Some(hit) = ray
-        .and_then(|(o, d)| ground_point(o, d))
-        .filter(|_| freqs > 0)
-    else {
+    // Without floor features (every model before them) there is nothing to write: no floor
+    // hit is computed on the renderer's per-ray path.
+    if freqs == 0 {
+        return;
+    }
+    let Some(hit) = ray.and_then(|(o, d)| ground_point(o, d)) else {
         out.fill(0.0);
         return;
     };
