@@ -49,8 +49,7 @@ on the views before it (--triangulate steps), so that they sit where those views
 slots are rendered into the views before it, and two \
 slots whose label maps overlap (intersection over union at least 0.2 over those views) are one \
 object, as is a slot whose pixels lie mostly (60 %) inside one earlier slot's in every view (a \
-piece of an object a view split); of a matched pair, the slot that draws in more of those views, \
-then more of their pixels, stays (the earlier view's on a tie) — so an object seen in several views gets one slot and \
+piece of an object a view split); the earlier view's slot stays — so an object seen in several views gets one slot and \
 an object only one view sees keeps its own; the background is the first view's. The kept slots \
 are then refined on all views at once (--refine-rays is per view; unless --refine says \
 otherwise, twice the model's default steps); up to three slots are then added where the views \
