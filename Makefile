@@ -585,8 +585,8 @@ model-city-then-room-diverse:
 # attention mask losses as in the small model's stages u1–u4 (without the compositor's, the
 # background, which reads the image, drew the chairs: docs/training-log.md). Room-Chair's
 # start, ROOM_INIT (Room-Diverse's, below, is the default model), is make model-paper's p11
-# after 4,000 steps on clevr567 at 128² (its p11.step4000 snapshot) — the paper-sized decoder with a hidden layer per light-field layer in
-# each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
+# after 4,000 steps on clevr567 at 128² (its p11.step4000 snapshot) — the paper-sized decoder
+# with a hidden layer per light-field layer in each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
 # wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
 # model grown, the earlier start, must first learn its new units. Held-out: 16 validation scenes
 # (64², then 128²) scored as it trains, 100 test scenes at 128² at the end. Data in

@@ -18,13 +18,10 @@ import os
 import sys
 
 import numpy as np
-from PIL import Image
 from sklearn.metrics import adjusted_rand_score
 
-
-def labels(path):
-    rgb = np.asarray(Image.open(path).convert("RGB")).reshape(-1, 3).astype(np.int64)
-    return rgb[:, 0] * 65536 + rgb[:, 1] * 256 + rgb[:, 2]
+# The label maps are read as per_view_fg_ari.py reads them (one id per colour, black 0).
+from per_view_fg_ari import labels
 
 
 def where_pixels_go(truth, predicted):
