@@ -303,7 +303,7 @@ ADAPT_RUN ?= out/adapt
 model-blender: build
 	@mkdir -p $(ADAPT_RUN)
 	test -d $(ADAPT_RUN)/data/train || { \
-	  $(RELEASE)/colf-synth --engine blender --out $(ADAPT_RUN)/data/train.tmp --scenes 320 -q --force \
+	  $(RELEASE)/colf-synth --engine blender --out $(ADAPT_RUN)/data/train.tmp --scenes 320 -q --resume \
 	  && find $(ADAPT_RUN)/data/train.tmp -name '*.mask.png' -delete \
 	  && mv $(ADAPT_RUN)/data/train.tmp $(ADAPT_RUN)/data/train; }
 	$(call synth_set,$(ADAPT_RUN)/data/val,--engine blender --scenes 32 --seed 7)
@@ -336,13 +336,14 @@ UNSUP_COMMON := --proposals --attention-mask-weight 0.1 \
   --eval-data $(UNSUP_RUN)/data/test --checkpoint-every 250 --keep-every 2000
 UNSUP_LATE := $(UNSUP_COMMON) --data $(UNSUP_RUN)/data/train2k --eval-every 2000 --eval-scenes 16
 # $(call synth_set,DIR,FLAGS): colf-synth's scenes in DIR, written to DIR.tmp and renamed when
-# complete, so a stopped target never leaves a half-made set that the next run would accept.
+# complete, so a stopped target never leaves a half-made set that the next run would accept;
+# the next run continues DIR.tmp where it stopped (--resume).
 define synth_set
-	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp $(2) -q --force && mv $(1).tmp $(1); }
+	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp $(2) -q --resume && mv $(1).tmp $(1); }
 endef
 # $(call unlabelled_set,DIR,SCENES): colf-synth's training scenes without their mask files.
 define unlabelled_set
-	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) $(3) -q --force \
+	test -d $(1) || { $(RELEASE)/colf-synth --out $(1).tmp --scenes $(2) $(3) -q --resume \
 	  && find $(1).tmp -name '*.mask.png' -delete && mv $(1).tmp $(1); }
 endef
 # The recipe's data alone (what make model-paper also trains on).

@@ -287,6 +287,64 @@ fn blender_uorf_layout_reads_back() {
     }
 }
 
+/// `--resume` with the Blender engine renders only the scenes missing, keeps the others as
+/// they were, and refuses a folder the analytic engine wrote.
+#[test]
+fn blender_resume_renders_only_what_is_missing() {
+    if !have_blender() {
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    let (whole, cut) = (tmp.path().join("whole"), tmp.path().join("cut"));
+    let args = [
+        "--scenes", "2", "--views", "1", "--size", "16", "--engine", "blender",
+    ];
+    generate(&whole, &args);
+    std::fs::create_dir(&cut).unwrap();
+    std::fs::create_dir(cut.join("scene_00000")).unwrap();
+    for e in std::fs::read_dir(whole.join("scene_00000")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, cut.join("scene_00000").join(p.file_name().unwrap())).unwrap();
+    }
+    let kept = std::fs::metadata(cut.join("scene_00000/view_000.png"))
+        .unwrap()
+        .modified()
+        .unwrap();
+    generate(&cut, &[&args[..], &["--resume"]].concat());
+    assert_eq!(
+        std::fs::metadata(cut.join("scene_00000/view_000.png"))
+            .unwrap()
+            .modified()
+            .unwrap(),
+        kept,
+        "a complete scene was rendered again"
+    );
+    for f in [
+        "dataset.json",
+        "scene_00001/scene.json",
+        "scene_00001/transforms.json",
+    ] {
+        assert_eq!(json(&cut.join(f)), json(&whole.join(f)), "{f}");
+    }
+    assert!(cut.join("scene_00001/view_000.png").is_file());
+    // A folder of the analytic engine's scenes is not the Blender engine's to continue.
+    let analytic = tmp.path().join("analytic");
+    generate(
+        &analytic,
+        &["--scenes", "1", "--views", "1", "--size", "16"],
+    );
+    let o = synth()
+        .arg("--out")
+        .arg(&analytic)
+        .args(["-q", "--resume"])
+        .args(args)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("`engine` differs"), "{err}");
+}
+
 /// A Blender that cannot be found is one error line naming the package, exit 1.
 #[test]
 fn missing_blender_is_one_clear_error() {

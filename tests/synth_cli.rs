@@ -51,6 +51,24 @@ fn files(dir: &Path) -> BTreeMap<PathBuf, Vec<u8>> {
     out
 }
 
+/// Runs colf-synth into `out` with `args`, quietly, and asserts it fails as bad input must:
+/// exit 1, one line on stderr (returned), the folder unchanged.
+fn refused(out: &Path, args: &[&str]) -> String {
+    let before = files(out);
+    let run = synth()
+        .arg("--out")
+        .arg(out)
+        .arg("-q")
+        .args(args)
+        .output()
+        .unwrap();
+    assert_eq!(run.status.code(), Some(1), "{run:?}");
+    let err = String::from_utf8_lossy(&run.stderr).into_owned();
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert_eq!(files(out), before, "{err}");
+    err
+}
+
 fn scene_json(dir: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(dir.join("scene.json")).unwrap()).unwrap()
 }
@@ -823,21 +841,11 @@ fn a_used_folder_is_refused_unless_forced_and_then_holds_only_the_new_run() {
     generate(&out, &["--scenes", "3", "--size", "16"]);
     std::fs::write(out.join("notes.txt"), "mine").unwrap();
     // Without --force: one line naming the folder, exit 1, nothing changed.
-    let before = files(&out);
-    let run = synth()
-        .arg("--out")
-        .arg(&out)
-        .args(["--scenes", "1", "--size", "16", "-q"])
-        .output()
-        .unwrap();
-    assert_eq!(run.status.code(), Some(1), "{run:?}");
-    let err = String::from_utf8_lossy(&run.stderr);
-    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    let err = refused(&out, &["--scenes", "1", "--size", "16"]);
     assert!(
         err.contains("not empty") && err.contains("--force"),
         "{err}"
     );
-    assert_eq!(files(&out), before);
     // With --force: the earlier scenes are gone, the user's file stays.
     generate(&out, &["--scenes", "1", "--size", "16", "--force"]);
     assert!(out.join("scene_00000").is_dir());
@@ -846,4 +854,37 @@ fn a_used_folder_is_refused_unless_forced_and_then_holds_only_the_new_run() {
         std::fs::read_to_string(out.join("notes.txt")).unwrap(),
         "mine"
     );
+}
+
+#[test]
+fn resume_continues_an_interrupted_run_and_refuses_other_options() {
+    let dir = tempfile::tempdir().unwrap();
+    let (whole, cut) = (dir.path().join("whole"), dir.path().join("cut"));
+    let args = ["--scenes", "3", "--size", "16", "--preset", "room-chair"];
+    generate(&whole, &args);
+    generate(&cut, &args);
+    // Stopped while writing scene 1: no dataset.json, scene 1 without its scene.json.
+    std::fs::remove_file(cut.join("dataset.json")).unwrap();
+    std::fs::remove_file(cut.join("scene_00001/scene.json")).unwrap();
+    std::fs::remove_dir_all(cut.join("scene_00002")).unwrap();
+    std::fs::write(cut.join("notes.txt"), "mine").unwrap();
+    // Other options: one line naming the file and the field, exit 1, nothing changed.
+    let err = refused(&cut, &[&args[..], &["--seed", "5", "--resume"]].concat());
+    assert!(
+        err.contains("scene_00000/scene.json") && err.contains("`seed` differs"),
+        "{err}"
+    );
+    // --force and --resume together are a usage error.
+    let both = synth()
+        .arg("--out")
+        .arg(&cut)
+        .args(["--scenes", "3", "--resume", "--force", "-q"])
+        .output()
+        .unwrap();
+    assert_eq!(both.status.code(), Some(2), "{both:?}");
+    // The same command resumed: the bytes of the uninterrupted run, the user's file kept.
+    generate(&cut, &[&args[..], &["--resume"]].concat());
+    let mut resumed = files(&cut);
+    assert_eq!(resumed.remove(Path::new("notes.txt")).unwrap(), b"mine");
+    assert_eq!(resumed, files(&whole));
 }

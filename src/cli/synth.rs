@@ -117,8 +117,15 @@ pub struct SynthArgs {
     /// (dataset.json, scene_NNNNN folders, uORF-layout files) are removed first, other files
     /// are left alone. Without it a non-empty folder is refused, so stale scenes cannot mix
     /// with new ones.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "resume")]
     pub force: bool,
+    /// Continue an interrupted run of the same command in its folder: complete scenes are
+    /// kept (each checked against what these options make; a scene made by other options
+    /// stops the run before anything is written), unfinished ones are rendered again, and
+    /// dataset.json is written at the end. The result is byte for byte that of an
+    /// uninterrupted run.
+    #[arg(long)]
+    pub resume: bool,
     /// No progress on stderr.
     #[arg(short, long)]
     pub quiet: bool,
@@ -198,6 +205,7 @@ impl SynthArgs {
             randomize_look: self.randomize_look,
             randomize_camera: self.randomize_camera,
             replace: self.force,
+            resume: self.resume,
         })
     }
 
@@ -251,9 +259,12 @@ pub fn run(args: &SynthArgs) -> anyhow::Result<()> {
         crate::synth::check_moved_object(&options)
             .with_context(|| format!("--move {}", m.object))?;
     }
-    if !options.replace {
-        crate::synth::clear_output(&options.out, false)
-            .map_err(|e| anyhow::anyhow!("{e:#} (--force replaces an earlier run's scenes)"))?;
+    if !options.replace && !options.resume {
+        crate::synth::clear_output(&options.out, false).map_err(|e| {
+            anyhow::anyhow!(
+                "{e:#} (--force replaces an earlier run's scenes, --resume continues it)"
+            )
+        })?;
     }
     let start = std::time::Instant::now();
     let result = crate::synth::run(&options, &report);

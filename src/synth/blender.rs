@@ -305,9 +305,14 @@ fn read_views(job: &Value, key: &str, n: usize) -> Result<Vec<RenderedView>> {
         .collect()
 }
 
-/// Renders the scenes of `args` with Blender: `args.jobs` processes, scene i in process
-/// i mod jobs; `sink` gets each scene as soon as its process reports it done.
-pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> Result<()> {
+/// Renders the scenes `todo` of `args` with Blender: `args.jobs` processes, the k-th scene of
+/// `todo` in process k mod jobs; `sink` gets each scene as soon as its process reports it done.
+pub fn run(
+    args: &SynthOptions,
+    blender: &BlenderOptions,
+    todo: &[u64],
+    sink: &SceneSink,
+) -> Result<()> {
     if args.randomize_look {
         bail!("the randomised look is an analytic-engine feature");
     }
@@ -335,7 +340,10 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
             Ok((s, frames))
         })
         .collect::<Result<_>>()?;
-    let jobs = blender.jobs.clamp(1, n.max(1) as usize);
+    if todo.is_empty() {
+        return Ok(());
+    }
+    let jobs = blender.jobs.clamp(1, todo.len());
     bake_floors(&sampled, tmp.path())?;
     let scene_jobs: Vec<Value> = sampled
         .par_iter()
@@ -349,7 +357,12 @@ pub fn run(args: &SynthOptions, blender: &BlenderOptions, sink: &SceneSink) -> R
     std::thread::scope(|scope| -> Result<()> {
         let mut handles = Vec::new();
         for p in 0..jobs {
-            let chunk: Vec<Value> = scene_jobs.iter().skip(p).step_by(jobs).cloned().collect();
+            let chunk: Vec<Value> = todo
+                .iter()
+                .skip(p)
+                .step_by(jobs)
+                .map(|&index| scene_jobs[index as usize].clone())
+                .collect();
             let expected = chunk.len();
             let job = json!({ "samples": blender.samples, "threads": 1, "scenes": chunk });
             let job_path = tmp.path().join(format!("job{p}.json"));

@@ -28,6 +28,7 @@ pub mod hash;
 pub mod look;
 pub mod presets;
 pub mod render;
+pub mod resume;
 pub mod room;
 pub mod scene;
 pub mod shading;
@@ -101,6 +102,8 @@ pub struct SynthOptions {
     /// Replace the files of an earlier run in `out` (see [`clear_output`]) instead of refusing
     /// a folder that is not empty.
     pub replace: bool,
+    /// Continue an interrupted run of the same options in `out` (see [`resume`]).
+    pub resume: bool,
 }
 
 impl SynthOptions {
@@ -361,27 +364,16 @@ pub fn layout_frames(frames: &[Frame], layout: OutputLayout) -> Vec<Frame> {
 /// uORF's vertical focal length in units of the image height (350/240).
 pub const UORF_FOCAL_Y_PER_HEIGHT: f64 = uorf::FOCAL_Y_PER_HEIGHT;
 
-/// Writes the files of scene `index` in `args.layout`. `frames` are the cameras the views
-/// were rendered with; `visible_pixels` of each object is counted from the rendered masks.
-fn write_outputs(
+/// The `scene.json` document of scene `index`: `scene` as sampled, with each object's
+/// `visible_pixels` counted from the masks as written, and `extra` (the look, Blender's
+/// settings) merged in.
+pub(crate) fn scene_doc(
     args: &SynthOptions,
     index: u64,
-    sampled: &SampledScene,
-    frames: &[Frame],
-    render: &SceneRender,
+    scene: &Scene,
+    scene_seed: u64,
     extra: serde_json::Value,
-) -> Result<()> {
-    let out = args.out.as_path();
-    let size = args.size;
-    let mut scene = sampled.scene.clone();
-    for (k, object) in scene.objects.iter_mut().enumerate() {
-        let id = (k + 1) as u8;
-        object.visible_pixels = render
-            .views
-            .iter()
-            .map(|v| v.mask.iter().filter(|&&m| m == id).count() as u64)
-            .collect();
-    }
+) -> Result<serde_json::Value> {
     let mut moved_json = serde_json::Value::Null;
     if let Some(m) = args.moved {
         let object = scene.objects.get(m.object - 1).with_context(|| {
@@ -403,8 +395,8 @@ fn write_outputs(
         "split": args.split.name(),
         "seed": args.seed,
         "index": index,
-        "scene_seed": sampled.scene_seed,
-        "size": size,
+        "scene_seed": scene_seed,
+        "size": args.size,
         "objects": scene.objects,
         "light": scene.light,
         "ground": scene.ground,
@@ -426,6 +418,47 @@ fn write_outputs(
             doc[k] = v;
         }
     }
+    Ok(doc)
+}
+
+/// The look of an analytic scene and what `scene.json` records of it: with
+/// `randomize_look`, drawn (changing `sampled`'s floor and light) and recorded; else the
+/// default look, unrecorded.
+fn analytic_look(
+    args: &SynthOptions,
+    sampled: &mut SampledScene,
+) -> (look::Look, serde_json::Value) {
+    if args.randomize_look {
+        let look = randomize_look(sampled);
+        (look, json!({ "look": look }))
+    } else {
+        (look::Look::default(), json!({}))
+    }
+}
+
+/// Writes the files of scene `index` in `args.layout`, `scene.json` last (so a scene whose
+/// `scene.json` exists is complete: see [`resume`]). `frames` are the cameras the views
+/// were rendered with; `visible_pixels` of each object is counted from the rendered masks.
+fn write_outputs(
+    args: &SynthOptions,
+    index: u64,
+    sampled: &SampledScene,
+    frames: &[Frame],
+    render: &SceneRender,
+    extra: serde_json::Value,
+) -> Result<()> {
+    let out = args.out.as_path();
+    let size = args.size;
+    let mut scene = sampled.scene.clone();
+    for (k, object) in scene.objects.iter_mut().enumerate() {
+        let id = (k + 1) as u8;
+        object.visible_pixels = render
+            .views
+            .iter()
+            .map(|v| v.mask.iter().filter(|&&m| m == id).count() as u64)
+            .collect();
+    }
+    let mut doc = scene_doc(args, index, &scene, sampled.scene_seed, extra)?;
     let png = |path: &Path, pixels: &[u8], channels| {
         writer::write_png(path, pixels, size, size, channels)
     };
@@ -551,23 +584,23 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
     let n = args.scenes;
     // An object to move that some scene lacks fails before anything is rendered.
     check_moved_object(args)?;
-    clear_output(out, args.replace)?;
+    let todo: Vec<u64> = if args.resume {
+        resume::pending_scenes(args)?
+    } else {
+        clear_output(out, args.replace)?;
+        (0..n).collect()
+    };
     std::fs::create_dir_all(out).with_context(|| format!("{shown}: cannot create the folder"))?;
-    let done = AtomicUsize::new(0);
+    let done = AtomicUsize::new((n - todo.len() as u64) as usize);
     let report = || {
         let k = done.fetch_add(1, Ordering::Relaxed) as u64 + 1;
         progress(Progress { done: k, total: n });
     };
     match &args.engine {
         Engine::Analytic => {
-            (0..n).into_par_iter().try_for_each(|index| -> Result<()> {
+            todo.par_iter().try_for_each(|&index| -> Result<()> {
                 let mut sampled = args.sample(index)?;
-                let (look, extra) = if args.randomize_look {
-                    let look = randomize_look(&mut sampled);
-                    (look, json!({ "look": look }))
-                } else {
-                    (look::Look::default(), json!({}))
-                };
+                let (look, extra) = analytic_look(args, &mut sampled);
                 let frames = layout_frames(&sampled.frames, args.layout);
                 let providing = if renders_manip(args) {
                     let j = uorf::providing_scene(index, n);
@@ -588,11 +621,13 @@ pub fn run(args: &SynthOptions, progress: &(dyn Fn(Progress) + Sync)) -> Result<
                 Ok(())
             })?;
         }
-        Engine::Blender(b) => blender::run(args, b, &|index, sampled, frames, render, extra| {
-            write_outputs(args, index, sampled, frames, render, extra)?;
-            report();
-            Ok(())
-        })?,
+        Engine::Blender(b) => {
+            blender::run(args, b, &todo, &|index, sampled, frames, render, extra| {
+                write_outputs(args, index, sampled, frames, render, extra)?;
+                report();
+                Ok(())
+            })?
+        }
     }
     let dataset = json!({
         "format": DATASET_FORMAT,
