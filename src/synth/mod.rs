@@ -520,15 +520,9 @@ pub fn check_moved_object(args: &SynthOptions) -> Result<()> {
 /// Whether `name` is a file or folder colf-synth writes: `dataset.json`, colf's `scene_NNNNN`
 /// folders, or uORF's flat files (`…_scNNNN_azNN…`, `NNN_movement.txt`, `scNNNN_scene.json`).
 fn written_by_synth(name: &str) -> bool {
-    let digits = |s: &str| !s.is_empty() && s.bytes().all(|b| b.is_ascii_digit());
     name == "dataset.json"
-        || name.strip_prefix("scene_").is_some_and(digits)
-        || name.contains("_sc") && name.contains("_az")
-        || name.strip_suffix("_movement.txt").is_some_and(digits)
-        || name
-            .strip_prefix("sc")
-            .and_then(|n| n.strip_suffix("_scene.json"))
-            .is_some_and(digits)
+        || resume::colf_scene_of(name).is_some()
+        || resume::uorf_scene_of(name).is_some()
 }
 
 /// Makes sure scenes of an earlier run cannot mix with this run's: a folder that holds

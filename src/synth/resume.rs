@@ -81,10 +81,7 @@ fn scan(out: &Path, layout: OutputLayout) -> Result<Found> {
         let entry = entry.with_context(|| format!("{shown}: cannot read the folder"))?;
         let name = entry.file_name();
         let Some(name) = name.to_str() else { continue };
-        let colf_scene = name
-            .strip_prefix("scene_")
-            .filter(|d| !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
-            .and_then(|d| d.parse::<u64>().ok());
+        let colf_scene = colf_scene_of(name);
         let uorf_scene = uorf_scene_of(name);
         let (index, other_layout) = match (layout, colf_scene, uorf_scene) {
             (OutputLayout::Colf, Some(i), _) => (i, false),
@@ -111,14 +108,21 @@ fn scan(out: &Path, layout: OutputLayout) -> Result<Found> {
     Ok(found)
 }
 
+/// `d` as a scene index, if it is all digits.
+fn number(d: &str) -> Option<u64> {
+    (!d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
+        .then(|| d.parse::<u64>().ok())
+        .flatten()
+}
+
+/// The scene index of a colf-layout scene folder, `scene_NNNNN`.
+pub(super) fn colf_scene_of(name: &str) -> Option<u64> {
+    name.strip_prefix("scene_").and_then(number)
+}
+
 /// The scene index of a uORF-layout file: `{i:05}_sc{s:04}_az{v:02}…`,
 /// `sc{s:04}_scene.json` or `{s:03}_movement.txt`.
-fn uorf_scene_of(name: &str) -> Option<u64> {
-    let number = |d: &str| {
-        (!d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()))
-            .then(|| d.parse::<u64>().ok())
-            .flatten()
-    };
+pub(super) fn uorf_scene_of(name: &str) -> Option<u64> {
     if let Some(rest) = name.strip_prefix("sc") {
         return rest.strip_suffix("_scene.json").and_then(number);
     }
