@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city model-city-then-room-diverse resume model-room-chair model-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city model-city-then-room-diverse resume model-room-chair model-room-diverse data-room-chair data-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -133,7 +133,7 @@ demo-blender: build
 # make model-room-chair): the red chair nearest the camera deleted and the green one moved to
 # the back of the room (examples/demo-room-edits.json names them by where they stand), an orbit
 # at the rooms' camera distance and elevation.
-ROOM_MODEL ?= $(ROOM_RUN)/room-chair/r128w.safetensors
+ROOM_MODEL ?= $(ROOM_RUN)/room-chair/r128.safetensors
 demo-room: build
 	test -f $(ROOM_MODEL) || { echo "demo-room: no room model at $(ROOM_MODEL): run make model-room-chair first, or set ROOM_MODEL" >&2; exit 1; }
 	$(call demo_steps,out/demo-room,--preset room-chair --size 128,--model $(ROOM_MODEL),examples/demo-room-edits.json,--size 128 --radius 8.5 --elevation 35)
@@ -557,8 +557,7 @@ model-paper-wide: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with one thread, its
 # output appended to its log. Run it at the start of every session. RESUME_RUNS lists them, one
-# a core: on one, p12 (finished; the default model), the city, then Room-Diverse
-# (model-city-then-room-diverse); on the other, the room-chair run (docs/training-log.md says
+# a core: on one, the city, then Room-Diverse (model-city-then-room-diverse); on the other, the room-chair run (docs/training-log.md says
 # how the cores are split).
 RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log \
   model-room-chair:$(ROOM_RUN)/room-chair.log
@@ -573,41 +572,39 @@ model-paper-then-city:
 	$(MAKE) model-paper-wide
 	$(MAKE) model-city CITY_INIT=$(PAPER_RUN)/p12.safetensors
 
-# The same core's queue since 2026-11-29: the city (above), then Room-Diverse from the default
-# model, while the room-chair run holds the other core.
+# The same core's queue since 2026-11-29: the city from the default model (p12's final model in
+# half precision, so the paper core's queue above need not run again on a machine that lost
+# ~/colf-runs), then Room-Diverse, while the room-chair run holds the other core.
 model-city-then-room-diverse:
-	$(MAKE) model-paper-then-city
+	$(MAKE) model-city
 	$(MAKE) model-room-diverse
 
-# Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): a clevr567 model
-# adapted to each room set without labels, the paper's curriculum — 64², then 90,000 steps at
-# 128² (its 90,000 iterations) — on unlabelled colf-synth room scenes (the paper's
-# 1,000 and 5,000 training scenes; mask files deleted), proposals for the compositor and
-# attention mask losses as in the small model's stages u1–u4 (without the compositor's, the
-# background, which reads the image, drew the chairs: docs/training-log.md). Room-Chair's
-# start, ROOM_INIT (Room-Diverse's, below, is the default model), is make model-paper's p11
-# after 4,000 steps on clevr567 at 128² (its p11.step4000 snapshot) — the paper-sized decoder
-# with a hidden layer per light-field layer in each hypernetwork, shadow lines and slots within 3 units (ROOM_SETS; a chair is about 1 unit
-# wide, 2 high); the bundled small decoder's own run stalled at 23.5 dB on chairs, and the bundled
-# model grown, the earlier start, must first learn its new units. Held-out: 16 validation scenes
-# (64², then 128²) scored as it trains, 100 test scenes at 128² at the end. Data in
+# Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the default
+# clevr567 model (p12's final model: the paper-sized decoder, 384-value slots, a hidden layer per
+# light-field layer in each hypernetwork, shadow lines and slots within 3 units) adapted to each
+# room set without labels, the paper's curriculum — 64², then 90,000 steps at 128² (its 90,000
+# iterations) — on unlabelled colf-synth room scenes (the paper's 1,000 and 5,000 training
+# scenes; mask files deleted), proposals for the compositor and attention mask losses as in the
+# small model's stages u1–u4 (without the compositor's, the background, which reads the image,
+# drew the chairs: docs/training-log.md). At the start the model is grown to hypernetworks 256
+# wide and floor features (ROOM_WIDE_SETS, below). Held-out: 16 validation scenes (64², then
+# 128²) scored as it trains, 100 test scenes at 128² at the end. Data in
 # $(ROOM_DATA)/PRESET/data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the work tree;
-# re-running resumes. The 64² stage is 32,000 steps, not the paper's 128,000: the encoder reads
-# 64² in both stages, so 64² steps differ only in their blurred ray targets, and rp6's 64²
-# validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000 (docs/training-log.md,
-# twenty-third session); the steps go to 128², where the targets are scored. Run with one thread
-# beside the other long run:
+# re-running resumes. The 64² stage is 8,000 steps, not the paper's 128,000: a step here costs the
+# same at either size (the encoder reads 64² in both stages and a step renders 256 rays a view),
+# so 64² steps differ only in their blurred ray targets; the default model was trained at 128²
+# already; and rp6's 64² validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000
+# (docs/training-log.md, twenty-third session), its FG-ARI 0.07-0.09 higher at 128². The steps go
+# to 128², where the targets are scored. Run with one thread beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 # A comma inside a $(call) argument.
 comma := ,
 ROOM_RUN ?= $(HOME)/colf-runs/rooms-p
-ROOM_INIT ?= $(PAPER_RUN)/p11.step4000.safetensors
-ROOM_SETS := $(PAPER_SETS)
-# The 128² stage starts with 384-value slots, as p12 (make model-paper-wide): the 256 new values
-# fresh, which lifted the fitted bound on clevr567 from 29.6 to 31.2 dB on a test scene at once
-# (docs/training-log.md, twenty-fourth session).
-ROOM_128_SETS := $(P12_SETS)
+# Both room sets start from the default model (issue 40: "start from the default clevr567
+# model"). Room-Chair started from p11's step-4,000 snapshot until 2026-11-29, when the machine
+# lost that run at r128w's step ≈ 10,450 (23.07 dB on its validation scenes at step 6,000).
+ROOM_INIT ?= models/default.safetensors
 ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --object-fraction 0 \
   --views 4 --rays 256 --checkpoint-every 250 --keep-every 4000 --eval-every 2000 --eval-scenes 16
 # Wider hypernetworks and floor features for the rooms (docs/training-log.md, "The room models",
@@ -616,52 +613,46 @@ ROOM_COMMON := --proposals --mask-weight 0.1 --attention-mask-weight 0.1 --objec
 # light-field weights reached 33.3 (34.0 with floor features): the span of 128 hidden units, not
 # the light fields, holds the rooms back, as 64 units held clevr567 back before p7.
 ROOM_WIDE_SETS := --set hypernet_hidden=256 --set floor_fourier_freqs=5
-# $(call room_model,PRESET,TRAIN_SCENES,SEED,INIT,SETS_64,SETS_128,HINT,WIDE_AT): the recipe above
-# for one room preset, from INIT grown with SETS_64 (64² stage) and SETS_128 (128² stage); HINT is
-# what the error says to do when INIT is missing. With WIDE_AT, the 128² stage (r128) stops at
-# that step and r128w takes over from it grown with ROOM_WIDE_SETS for the stage's remaining
-# steps (90,000 in all), at 5e-5 as the growths of make model-paper; the final model is then
-# r128w.
-room_final = $(ROOM_RUN)/$(1)/$(if $(2),r128w,r128).safetensors
-define room_model
-	@mkdir -p $(ROOM_DATA)/$(1)/data $(ROOM_RUN)/$(1)
+# $(call room_data,PRESET,TRAIN_SCENES): one room preset's data sets (make data-room-chair,
+# make data-room-diverse make them ahead, e.g. niced beside a run on the other preset).
+define room_data
+	@mkdir -p $(ROOM_DATA)/$(1)/data
 	$(call unlabelled_set,$(ROOM_DATA)/$(1)/data/train,$(2),--preset $(1))
 	$(call unlabelled_set,$(ROOM_DATA)/$(1)/data/train128,$(2),--preset $(1) --size 128)
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/val,--preset $(1) --scenes 16 --seed 7)
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/val128,--preset $(1) --scenes 16 --seed 7 --size 128)
 	$(call synth_set,$(ROOM_DATA)/$(1)/data/test128,--preset $(1) --scenes 100 --split test \
 	  --size 128)
-	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(4) || \
-	  { echo "model-$(1): no initial model at $(4): $(7)" >&2; exit 1; }
+endef
+# $(call room_model,PRESET,TRAIN_SCENES,SEED): the recipe above for one room preset; the final
+# model is $(ROOM_RUN)/PRESET/r128.safetensors.
+define room_model
+	$(call room_data,$(1),$(2))
+	@mkdir -p $(ROOM_RUN)/$(1)
+	test -f $(ROOM_RUN)/$(1)/r64.safetensors.ckpt || test -f $(ROOM_INIT) || \
+	  { echo "model-$(1): no initial model at $(ROOM_INIT): set ROOM_INIT to a clevr567 model" >&2; exit 1; }
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
-	  --steps 32000 --lr 5e-5 --warmup 200 --decay-from 24000 --final-lr 1e-5 --seed $(3) \
-	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(4) $(5))
-	test -f $(ROOM_RUN)/$(1)/r128w.safetensors.ckpt || \
+	  --steps 8000 --lr 5e-5 --warmup 200 --decay-from 6000 --final-lr 1e-5 --seed $(3) \
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(ROOM_INIT) $(ROOM_WIDE_SETS))
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train128 \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128.safetensors \
-	  --steps $(or $(8),90000) --lr 2e-5 --warmup 100 --decay-from 60000 --final-lr 2e-6 --seed $(3) \
-	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors $(6))
-	$(if $(8),$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train128 \
-	  --eval-data $(ROOM_DATA)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128w.safetensors \
-	  --steps $$((90000 - $(8))) --lr 5e-5 --warmup 200 --decay-from $$((60000 - $(8))) --final-lr 2e-6 \
-	  --seed $(3) $(call resume_or_init,$(ROOM_RUN)/$(1)/r128w.safetensors,$(ROOM_RUN)/$(1)/r128.safetensors $(ROOM_WIDE_SETS)))
+	  --steps 90000 --lr 2e-5 --warmup 100 --decay-from 60000 --final-lr 2e-6 --seed $(3) \
+	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors)
 	$(RELEASE)/colf-train plot $(ROOM_RUN)/$(1)/r64.safetensors.log.jsonl \
-	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl $(if $(8),$(ROOM_RUN)/$(1)/r128w.safetensors.log.jsonl) \
-	  --label 64 --label 128 $(if $(8),--label 128w) -o $(ROOM_RUN)/$(1)/training.png
-	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(call room_final,$(1),$(8)),$(ROOM_RUN)/$(1)/eval.json)
-	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(call room_final,$(1),$(8)),$(ROOM_RUN)/$(1)/eval-fast.json,--fast)
+	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl --label 64 --label 128 -o $(ROOM_RUN)/$(1)/training.png
+	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval.json)
+	$(call eval_json,$(ROOM_DATA)/$(1)/data/test128,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/eval-fast.json,--fast)
 endef
-# Room-Chair: rp6 (from p11's step 4,000) to step 10,000 of its 128² stage, then r128w.
 model-room-chair: build
-	$(call room_model,room-chair,1000,81,$(ROOM_INIT),$(ROOM_SETS),$(ROOM_128_SETS),run make model-paper to p11's step 4$(comma)000$(comma) or set ROOM_INIT,10000)
-# Room-Diverse starts from the default model itself (issue 40: "start from the default clevr567
-# model"): since 2026-11-29 that is p12's final model, which already has ROOM_SETS's and
-# ROOM_128_SETS's sizes (384-value slots); it grows to ROOM_WIDE_SETS at the start.
-ROOM_DIVERSE_INIT ?= models/default.safetensors
+	$(call room_model,room-chair,1000,81)
 model-room-diverse: build
-	$(call room_model,room-diverse,5000,82,$(ROOM_DIVERSE_INIT),$(ROOM_WIDE_SETS),,set ROOM_DIVERSE_INIT to a clevr567 model)
+	$(call room_model,room-diverse,5000,82)
+data-room-chair: build
+	$(call room_data,room-chair,1000)
+data-room-diverse: build
+	$(call room_data,room-diverse,5000)
 
 # City-Block (issue 39; docs/training.md, "The city model"): the paper's recipe. c0: a static
 # background field pretrained alone on the street (K = 0 slots; the bundled default model's
@@ -704,9 +695,11 @@ CITY_CONTEXT := --context-views 0,1
 # -0.08 dB (docs/training-log.md, "The city model", fourteenth session); the rest of c2 did not
 # move the segmentation over 16,000 steps.
 CITY_CLAIM := --mask-claim 1
-# c1 stops at 20,000 steps at 64² (it was to run 60,000): the street views' segmentation was level
-# from step 2,000 to 20,000 (NV-FG-ARI 0.58-0.65; docs/training-log.md, "The city model"), and
-# the test protocol is at 128², where a car has four times the pixels: c2 gets the core sooner.
+# c1 stops at 8,000 steps at 64² (it was to run 60,000, then 20,000): the street views'
+# segmentation was level from step 2,000 to 20,000 (NV-FG-ARI 0.58-0.65) and c1 from p12 drew
+# them only 0.23 dB better at step 20,000 than at 8,000 (29.56 against 29.33 dB;
+# docs/training-log.md, "The city model"), and the test protocol is at 128², where a car has four
+# times the pixels: c2 gets the core sooner.
 model-city: build
 	@mkdir -p $(CITY_RUN)/data
 	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
@@ -724,7 +717,7 @@ model-city: build
 	test -f $(CITY_RUN)/c2.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
-	  --steps 20000 --lr 5e-5 --warmup 200 --decay-from 18000 --final-lr 1e-5 \
+	  --steps 8000 --lr 5e-5 --warmup 200 --decay-from 6000 --final-lr 1e-5 \
 	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors) \
 	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
 	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) $(CITY_CLAIM) \
