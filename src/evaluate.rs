@@ -60,6 +60,52 @@ pub struct SceneScores {
     /// shared between slots.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub objects_no_slot: Option<usize>,
+    /// How the FG-ARI splits between views with one object and the rest ([`LoneObjects`]);
+    /// left out of the JSON where no scored view shows a lone object.
+    #[serde(flatten, skip_serializing_if = "LoneObjects::is_empty")]
+    pub lone: LoneObjects,
+}
+
+/// FG-ARI split by how many ground-truth objects a view shows. With one object the FG-ARI is
+/// all or nothing: 1 when every pixel of it has the same predicted label, 0 as soon as two
+/// labels share it, however few pixels the second holds (a street's context view in front of a
+/// row with one car). So a data set with such views also gets the FG-ARI of its views with two
+/// objects or more, and the count of its lone-object views and of those drawn whole.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct LoneObjects {
+    /// FG-ARI averaged over the input views that show two objects or more.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fg_ari_multi: Option<f64>,
+    /// Input views that show exactly one object…
+    pub lone_object_views: usize,
+    /// …and of those, the views whose object one label wins whole (FG-ARI 1; the label may be
+    /// the background's, as FG-ARI counts it).
+    pub lone_object_whole: usize,
+    /// The same for the novel views.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nv_fg_ari_multi: Option<f64>,
+    pub nv_lone_object_views: usize,
+    pub nv_lone_object_whole: usize,
+}
+
+impl LoneObjects {
+    /// Whether no scored view showed a lone object (then the split says nothing new).
+    pub fn is_empty(&self) -> bool {
+        self.lone_object_views == 0 && self.nv_lone_object_views == 0
+    }
+}
+
+/// Of one view's ground-truth object pixels: `None` without any, else whether the view shows
+/// a single object and, if so, whether one predicted label wins all of its pixels.
+fn lone_object(labels: &[u32], gt: &[u32]) -> Option<(bool, bool)> {
+    let mut object_pixels = labels.iter().zip(gt).filter(|(_, &g)| g > 0);
+    let (&first_label, &first_object) = object_pixels.next()?;
+    let (mut one_object, mut one_label) = (true, true);
+    for (&l, &g) in object_pixels {
+        one_object &= g == first_object;
+        one_label &= l == first_label;
+    }
+    Some((one_object, one_object && one_label))
 }
 
 /// Which views of a scene are encoded and which are scored as novel views.
@@ -127,6 +173,21 @@ pub struct DatasetScores {
     /// …and the share of them that no slot draws (left to the background).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub no_slot_share: Option<f64>,
+    /// Where some scored views show a lone object ([`LoneObjects`]): the FG-ARI of the views
+    /// with two objects or more (means over scenes, as `fg_ari`), the lone-object views counted
+    /// over all scenes and the share of them drawn whole.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fg_ari_multi: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lone_object_views: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lone_object_whole_share: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nv_fg_ari_multi: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nv_lone_object_views: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nv_lone_object_whole_share: Option<f64>,
 }
 
 /// The quality scores of [`DatasetScores`] that carry a mean and a standard deviation, by name.
@@ -167,6 +228,15 @@ impl DatasetScores {
         };
         let one_slot_share = share(|r| r.objects_one_slot);
         let no_slot_share = share(|r| r.objects_no_slot);
+        let any_lone = rows.iter().any(|r| !r.lone.is_empty());
+        let lone_sum =
+            |f: fn(&LoneObjects) -> usize| rows.iter().map(|r| f(&r.lone)).sum::<usize>();
+        let (lone_views, nv_lone_views) = (
+            lone_sum(|l| l.lone_object_views),
+            lone_sum(|l| l.nv_lone_object_views),
+        );
+        let whole_share =
+            |whole: usize, views: usize| (views > 0).then(|| whole as f64 / views as f64);
         DatasetScores {
             scenes: rows.len(),
             psnr,
@@ -189,6 +259,19 @@ impl DatasetScores {
             one_slot_share,
             objects_seen_twice,
             no_slot_share,
+            fg_ari_multi: any_lone
+                .then(|| mean(rows.iter().map(|r| r.lone.fg_ari_multi)))
+                .flatten(),
+            lone_object_views: any_lone.then_some(lone_views),
+            lone_object_whole_share: whole_share(lone_sum(|l| l.lone_object_whole), lone_views),
+            nv_fg_ari_multi: any_lone
+                .then(|| mean(rows.iter().map(|r| r.lone.nv_fg_ari_multi)))
+                .flatten(),
+            nv_lone_object_views: any_lone.then_some(nv_lone_views),
+            nv_lone_object_whole_share: whole_share(
+                lone_sum(|l| l.nv_lone_object_whole),
+                nv_lone_views,
+            ),
         }
     }
 }
@@ -333,6 +416,7 @@ pub fn score_scene(
     let (mut psnrs, mut ssims) = (Vec::new(), Vec::new());
     let (mut nv_aris, mut nv_fg_aris) = (Vec::new(), Vec::new());
     let (mut input_psnrs, mut input_aris, mut input_fg_aris) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut multi_fg_aris, mut nv_multi_fg_aris) = (Vec::new(), Vec::new());
     let mut used: Vec<u32> = Vec::new();
     let (mut fg_won, mut fg_total) = (0usize, 0usize);
     for (i, (view, render)) in scene.views.iter().zip(renders).enumerate() {
@@ -375,13 +459,25 @@ pub fn score_scene(
             }
             let full = ari(&labels, &gt)?;
             let fga = fg_ari(&labels, &gt)?;
+            let lone = lone_object(&labels, &gt);
+            let multi = fga.filter(|_| lone.is_some_and(|(one, _)| !one));
+            let (lone_view, lone_whole) = match lone {
+                Some((true, whole)) => (1, whole as usize),
+                _ => (0, 0),
+            };
             if input {
                 input_aris.push(full);
                 input_fg_aris.extend(fga);
+                multi_fg_aris.extend(multi);
+                row.lone.lone_object_views += lone_view;
+                row.lone.lone_object_whole += lone_whole;
             }
             if novel {
                 nv_aris.push(full);
                 nv_fg_aris.extend(fga);
+                nv_multi_fg_aris.extend(multi);
+                row.lone.nv_lone_object_views += lone_view;
+                row.lone.nv_lone_object_whole += lone_whole;
             }
         }
     }
@@ -396,6 +492,8 @@ pub fn score_scene(
     row.ssim = avg(&ssims);
     row.nv_ari = avg(&nv_aris);
     row.nv_fg_ari = avg(&nv_fg_aris);
+    row.lone.fg_ari_multi = avg(&multi_fg_aris);
+    row.lone.nv_fg_ari_multi = avg(&nv_multi_fg_aris);
     row.fg_share = (fg_total > 0).then(|| fg_won as f64 / fg_total as f64);
     if inputs.len() > 1 {
         if let Some(objects) = objects_one_slot(scene, renders, inputs) {
@@ -565,6 +663,58 @@ mod tests {
         let fitted = fit_latents_to_views(&model, &scene, 2, 2, Some(&one_pass)).unwrap();
         assert_ne!(fitted, together);
         assert!(fit_latents_to_views(&model, &scene, 3, 0, None).is_err());
+    }
+
+    #[test]
+    fn lone_object_views_are_counted_apart_from_the_fg_ari_of_the_others() {
+        // View 0 (input): two objects, object 2 split between slot 2 and the background.
+        // View 1 (novel): one object, one pixel of it won by the background: FG-ARI 0.
+        // View 2 (novel): one object, drawn whole by slot 1: FG-ARI 1.
+        let (a, ra) = view_and_render([1, 1, 2, 2], [1, 1, 2, 0]);
+        let (b, rb) = view_and_render([0, 1, 1, 1], [0, 1, 1, 0]);
+        let (c, rc) = view_and_render([1, 1, 0, 0], [1, 1, 0, 2]);
+        let scene = SceneData {
+            name: "s".into(),
+            views: vec![a, b, c],
+            view_local_ids: false,
+        };
+        let row = score_scene(&scene, &[ra, rb, rc], &Protocol::default()).unwrap();
+        let view_0 = fg_ari(&[1, 1, 2, 0], &[1, 1, 2, 2]).unwrap();
+        assert_eq!(row.fg_ari, view_0);
+        assert_eq!(row.nv_fg_ari, Some(0.5));
+        let expected = LoneObjects {
+            fg_ari_multi: view_0,
+            lone_object_views: 0,
+            lone_object_whole: 0,
+            nv_fg_ari_multi: None,
+            nv_lone_object_views: 2,
+            nv_lone_object_whole: 1,
+        };
+        assert_eq!(row.lone, expected);
+        let json = serde_json::to_value(&row).unwrap();
+        assert_eq!(json["nv_lone_object_views"], 2);
+        assert!(json.get("nv_fg_ari_multi").is_none());
+
+        let scores = DatasetScores::from_scenes(&[row.clone(), row.clone()]);
+        assert_eq!(scores.fg_ari_multi, view_0);
+        assert_eq!(scores.lone_object_views, Some(0));
+        assert_eq!(scores.lone_object_whole_share, None);
+        assert_eq!(scores.nv_lone_object_views, Some(4));
+        assert_eq!(scores.nv_lone_object_whole_share, Some(0.5));
+
+        // Without lone objects nothing is added, to the scene's JSON or the data set's.
+        let (d, rd) = view_and_render([1, 1, 2, 2], [1, 1, 2, 2]);
+        let plain = SceneData {
+            views: vec![d.clone(), d],
+            ..scene
+        };
+        let row = score_scene(&plain, &[rd.clone(), rd], &Protocol::default()).unwrap();
+        assert!(row.lone.is_empty());
+        let json = serde_json::to_value(&row).unwrap();
+        assert!(json.get("lone_object_views").is_none() && json.get("fg_ari_multi").is_none());
+        let scores = DatasetScores::from_scenes(&[row]);
+        let json = serde_json::to_value(&scores).unwrap();
+        assert!(json.get("lone_object_views").is_none() && json.get("fg_ari_multi").is_none());
     }
 
     #[test]

@@ -41,7 +41,11 @@ evaluation with N encoding seeds (S, S + 1000, ...): each score is then the mean
 means, NAME_seed_std the standard deviation of the runs' means, and per_seed lists each run's \
 summary. Also reported: input_psnr \
 (view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
-slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). View 0 is encoded as \
+slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). Where some scored views show a single object, whose FG-ARI is all or nothing (0 as soon as two \
+labels share its pixels), the FG-ARI is also split: fg_ari_multi and nv_fg_ari_multi over the views \
+with two objects or more, lone_object_views and nv_lone_object_views counting the single-object \
+views, lone_object_whole_share and nv_lone_object_whole_share the share of them whose object one label \
+wins whole (FG-ARI 1; the background's label counts, as in FG-ARI). View 0 is encoded as \
 colf-encode would: with the model's default encoding (its slots, tries and refinement steps on \
 view 0, see colf-encode(1); view 0 only, so the novel views stay unseen), or as --slots, \
 --tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps, redundant_mse and, \

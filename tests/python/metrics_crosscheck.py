@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Cross-check `colf-eval` against the reference implementations uORF uses.
 
-Usage: metrics_crosscheck.py COLF_EVAL_BINARY WORK_DIR [DATASET_DIR]
+Usage: metrics_crosscheck.py COLF_EVAL_BINARY WORK_DIR [DATASET_DIR ...]
 
 Writes random and structured image and mask pairs as PNG (Pillow), runs
 `colf-eval images` / `colf-eval masks` on each, and compares with
@@ -15,7 +15,10 @@ evaluation code (models/uorf_eval_model.py) does: ari = adjusted_rand_score of v
 label maps, fg_ari = the same over view 0's ground-truth foreground pixels, nv_ari =
 adjusted_rand_score of the full label maps (background included) of each novel view, averaged
 over the views, nv_fg_ari = the novel views' FG-ARI, averaged; then the means over scenes and
-their population standard deviations (np.std), the summary's NAME and NAME_std.
+their population standard deviations (np.std), the summary's NAME and NAME_std. Where some
+view shows a single object (a city street), also the FG-ARI split by objects in view
+(fg_ari_multi, lone_object_views, lone_object_whole_share and their nv_ forms; docs/eval.md),
+recomputed the same way; elsewhere, that none of it is written.
 
 Exits 1 on any disagreement, naming the case.
 """
@@ -134,18 +137,22 @@ def dataset_check(binary, work, data, failures):
         sys.exit(f"{data}: the dataset check needs at least 2 scenes, found {len(rows)}")
     names = ("ari", "fg_ari", "nv_ari", "nv_fg_ari")
     per_scene = {name: [] for name in names}
+    lone_rows = []
     for row in rows:
         scene = row["scene"]
         views = sorted(f for f in os.listdir(os.path.join(data, scene)) if f.endswith(".mask.png"))
         if len(views) < 2:
             sys.exit(f"{data}/{scene}: no novel view with a mask")
-        full, fg_only = [], []
+        full, fg_only, objects, whole = [], [], [], []
         for v, name in enumerate(views):
             gt = load_labels(os.path.join(data, scene, name))
             pred = load_labels(os.path.join(renders, f"{scene}_v{v}.mask.png"))
             fg = gt != 0
             full.append(adjusted_rand_score(gt, pred))
             fg_only.append(adjusted_rand_score(gt[fg], pred[fg]) if fg.any() else None)
+            objects.append(len(np.unique(gt[fg])))
+            whole.append(len(np.unique(pred[fg])) == 1)
+        lone_rows.append((row, fg_only, objects, whole))
         novel_fg = [x for x in fg_only[1:] if x is not None]
         ref = {
             "ari": full[0],
@@ -164,6 +171,52 @@ def dataset_check(binary, work, data, failures):
     for name in names:
         check("dataset-summary", name, doc[name], float(np.mean(per_scene[name])), failures)
         check("dataset-summary", f"{name}_std", doc[f"{name}_std"], float(np.std(per_scene[name])),
+              failures)
+    lone_check(doc, lone_rows, failures)
+
+
+def lone_check(doc, lone_rows, failures):
+    """The FG-ARI split by objects in view (view 0 the input, the rest novel): written only
+    where some view shows one object, then each scene's and the summary's fields recomputed."""
+    any_lone = any(n == 1 for _, _, objects, _ in lone_rows for n in objects)
+    fields = ("fg_ari_multi", "lone_object_views", "lone_object_whole_share", "nv_fg_ari_multi",
+              "nv_lone_object_views", "nv_lone_object_whole_share")
+    if not any_lone:
+        if any(f in doc for f in fields):
+            failures.append("lone: split written though no view shows a lone object")
+        return
+    multi_means = {"fg_ari_multi": [], "nv_fg_ari_multi": []}
+    totals = {"": [0, 0], "nv_": [0, 0]}
+    for row, fg_only, objects, whole in lone_rows:
+        # A scene row carries the split only where one of its scored views shows a lone object.
+        scene_lone = any(n == 1 for n in objects)
+        if not scene_lone and "lone_object_views" in row:
+            failures.append(f"lone-{row['scene']}: split written though no view shows a lone object")
+        for prefix, vs in (("", [0]), ("nv_", range(1, len(objects)))):
+            multi = [fg_only[v] for v in vs if objects[v] >= 2]
+            lone = [v for v in vs if objects[v] == 1]
+            n_whole = sum(whole[v] for v in lone)
+            ref_multi = float(np.mean(multi)) if multi else None
+            if ref_multi is not None:
+                multi_means[f"{prefix}fg_ari_multi"].append(ref_multi)
+            totals[prefix][0] += len(lone)
+            totals[prefix][1] += n_whole
+            if not scene_lone:
+                continue
+            check(f"lone-{row['scene']}", f"{prefix}fg_ari_multi", row.get(f"{prefix}fg_ari_multi"),
+                  ref_multi, failures)
+            for name, ref in ((f"{prefix}lone_object_views", len(lone)),
+                              (f"{prefix}lone_object_whole", n_whole)):
+                check(f"lone-{row['scene']}", name, row[name], ref, failures)
+    for prefix in ("", "nv_"):
+        means = multi_means[f"{prefix}fg_ari_multi"]
+        check("lone-summary", f"{prefix}fg_ari_multi", doc.get(f"{prefix}fg_ari_multi"),
+              float(np.mean(means)) if means else None, failures)
+        views, n_whole = totals[prefix]
+        check("lone-summary", f"{prefix}lone_object_views", doc.get(f"{prefix}lone_object_views"),
+              views, failures)
+        check("lone-summary", f"{prefix}lone_object_whole_share",
+              doc.get(f"{prefix}lone_object_whole_share"), n_whole / views if views else None,
               failures)
 
 
@@ -193,8 +246,10 @@ def main():
         ref_fg = adjusted_rand_score(y[fg], x[fg]) if fg.any() else None
         check(case, "ari", ours["ari"], float(adjusted_rand_score(y, x)), failures)
         check(case, "fg_ari", ours["fg_ari"], ref_fg, failures)
-    if len(sys.argv) > 3:
-        dataset_check(binary, work, sys.argv[3], failures)
+    for i, data in enumerate(sys.argv[3:]):
+        work_i = os.path.join(work, f"dataset{i}")
+        os.makedirs(work_i, exist_ok=True)
+        dataset_check(binary, work_i, data, failures)
     if failures:
         sys.exit(f"colf-eval disagrees with scikit-image/scikit-learn on: {', '.join(failures)}")
 
