@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-paper-then-city model-city-then-room-diverse resume model-room-chair model-room-diverse data-room-chair data-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-city-then-room-diverse resume model-room-chair model-room-diverse data-room-chair data-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -564,17 +564,11 @@ RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log \
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
-# The paper core's queue: p12 to its end (with its evaluations), then the city from p12's final
-# model (the paper's recipe wants a start that already separates objects; the paper-sized
-# decoder draws sharper edges than the bundled model, whose city model left 3-14 % of a lone
-# car's outline to the street: docs/training-log.md, "The city model").
-model-paper-then-city:
-	$(MAKE) model-paper-wide
-	$(MAKE) model-city CITY_INIT=$(PAPER_RUN)/p12.safetensors
-
-# The same core's queue since 2026-11-29: the city from the default model (p12's final model in
-# half precision, so the paper core's queue above need not run again on a machine that lost
-# ~/colf-runs), then Room-Diverse, while the room-chair run holds the other core.
+# One core's queue: the city from the default model (p12's final model in half precision; the
+# paper-sized decoder draws sharper edges than the small model, whose city model left 3-14 % of a
+# lone car's outline to the street: docs/training-log.md, "The city model"), then Room-Diverse,
+# while the room-chair run holds the other core. Until 2026-11-29 the city started from p12's
+# own 32-bit file at the end of make model-paper-wide.
 model-city-then-room-diverse:
 	$(MAKE) model-city
 	$(MAKE) model-room-diverse
