@@ -544,6 +544,9 @@ fn usage_errors_exit_2() {
         ("encode", vec![GOOD_PNG, "--refine-shadow-reach", "nan"]),
         ("encode", vec![GOOD_PNG, "--refine-slot-reach", "-1"]),
         ("encode", vec![GOOD_PNG, "--refine-slot-reach", "inf"]),
+        ("encode", vec![GOOD_PNG, "--refine-mask", "-1"]),
+        ("encode", vec![GOOD_PNG, "--refine-mask", "nan"]),
+        ("encode", vec![GOOD_PNG, "--refine-mask-claim", "-1"]),
         ("sheet", vec![GOOD_PNG, "--scale", "0", "-o", "s.png"]),
     ];
     for (stage, args) in cases {
@@ -556,6 +559,23 @@ fn usage_errors_exit_2() {
         assert!(out.stdout.is_empty());
         assert!(!String::from_utf8_lossy(&out.stderr).contains("panicked"));
     }
+}
+
+/// Refinement's mask loss needs a model with a static background: the bundled model reads its
+/// background from the image, so the encoding is refused at once, with nothing written.
+#[test]
+fn a_refinement_mask_loss_needs_a_static_background() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("scene.codes");
+    fails_with(
+        bin("colf-encode")
+            .args([GOOD_PNG, "--refine-mask", "1", "-o"])
+            .arg(&out),
+        "encode",
+        1,
+        "needs a model with a static background",
+    );
+    assert!(!out.exists());
 }
 
 // ---- 11. messages name the file ----------------------------------------------------------------

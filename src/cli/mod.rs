@@ -295,6 +295,25 @@ pub struct FitArgs {
     /// held-out scenes; the codes are rendered with all of the model's slots (docs/speed.md).
     #[arg(long, default_value_t = crate::encode::refine::DEFAULT_REFINE_SLOT_REACH, value_name = "D", allow_negative_numbers = true, value_parser = parse::non_negative)]
     pub refine_slot_reach: f64,
+
+    /// For a model with a static background (a city model): during refinement, also the
+    /// compositor's mask loss against each input view's object proposals (the pixels the
+    /// background's render does not explain), weighted W, objects matched to slots view by view
+    /// as in training; the colour loss alone lets the background keep the object pixels that
+    /// look like it (default: the model's, else 0: colour alone).
+    #[arg(long, value_name = "W", allow_negative_numbers = true, value_parser = parse::non_negative)]
+    pub refine_mask: Option<f64>,
+
+    /// With --refine-mask: proposal pixels left unsure within PX pixels of an object count to
+    /// it (default: the model's, else 0).
+    #[arg(long, value_name = "PX")]
+    pub refine_mask_claim: Option<usize>,
+
+    /// With --refine-mask: match each view's objects to slots and ask each object of its own
+    /// slot, as training does (default: an object's pixels ask only that some slot draw them,
+    /// and the colour loss says which).
+    #[arg(long)]
+    pub refine_mask_match: bool,
 }
 
 impl FitArgs {
@@ -317,6 +336,8 @@ impl FitArgs {
             refine_lr: self.refine_lr.or(base.refine_lr),
             refine_frame_lr: self.refine_frame_lr.or(base.refine_frame_lr),
             refine_rays: self.refine_rays.or(base.refine_rays),
+            refine_mask: self.refine_mask.or(base.refine_mask),
+            refine_mask_claim: self.refine_mask_claim.or(base.refine_mask_claim),
         }
     }
 
@@ -417,6 +438,9 @@ impl FitArgs {
             support: self.refine_support,
             shadow_reach: self.refine_shadow_reach,
             slot_reach: self.refine_slot_reach,
+            mask_weight: encoding.refine_mask.unwrap_or(defaults.mask_weight),
+            mask_claim: encoding.refine_mask_claim.unwrap_or(defaults.mask_claim),
+            mask_match: self.refine_mask_match,
             seed,
         }
     }
@@ -445,6 +469,8 @@ mod tests {
                 refine_lr: None,
                 refine_frame_lr: None,
                 refine_rays: None,
+                refine_mask: None,
+                refine_mask_claim: None,
             }),
             ..Config::small()
         };
@@ -483,6 +509,8 @@ mod tests {
             refine_lr: None,
             refine_frame_lr: None,
             refine_rays: None,
+            refine_mask: None,
+            refine_mask_claim: None,
         };
         let tuned = Config {
             inference: Some(measured),
@@ -504,6 +532,8 @@ mod tests {
                 refine_lr: None,
                 refine_frame_lr: None,
                 refine_rays: None,
+                refine_mask: None,
+                refine_mask_claim: None,
             }
         );
         assert_eq!(
@@ -515,6 +545,8 @@ mod tests {
                 refine_lr: None,
                 refine_frame_lr: None,
                 refine_rays: None,
+                refine_mask: None,
+                refine_mask_claim: None,
             }
         );
         // A model's measured learning rates reach the refinement unless a flag says otherwise;
@@ -525,6 +557,8 @@ mod tests {
                 refine_lr: Some(0.02),
                 refine_frame_lr: Some(0.015),
                 refine_rays: Some(512),
+                refine_mask: None,
+                refine_mask_claim: None,
                 ..measured
             }),
             ..Config::small()

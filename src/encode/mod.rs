@@ -135,6 +135,7 @@ pub fn encode_image_report(
     opts: &EncodeOptions,
 ) -> Result<(Codes, Option<RefineReport>)> {
     opts.check()?;
+    refine::check_mask(model, &opts.refine)?;
     let camera = opts
         .camera
         .clone()

@@ -86,6 +86,7 @@ pub fn encode_views(
     opts: &EncodeOptions,
 ) -> Result<(Codes, MultiViewReport)> {
     opts.check()?;
+    refine::check_mask(model, &opts.refine)?;
     let single = |input: &ViewInput| EncodeOptions {
         camera: Some(input.camera.clone()),
         source: input.source.clone(),

@@ -25,6 +25,9 @@ pub struct InputView<'a> {
     pub dirs: Vec<DVec3>,
     /// The pixels encodings are judged on.
     pub compared: ComparedPixels,
+    /// For a model with a static background: the view's object proposals against that
+    /// background's render (computed once, by [`InputView::proposal_ids`]).
+    proposals: OnceLock<Vec<u8>>,
     /// With `Config::frames_from_residual`: 1 on the pixels the model's background alone does
     /// not draw, 0 elsewhere (computed once, by [`InputView::object_pixels`]).
     objects: OnceLock<Vec<f32>>,
@@ -51,17 +54,19 @@ impl<'a> InputView<'a> {
             origins,
             dirs,
             compared,
+            proposals: OnceLock::new(),
             objects: OnceLock::new(),
         }
     }
 
-    /// The pixels (row-major, 1 or 0) that `model`'s background, rendered alone at this view's
-    /// camera, does not explain: its object proposals against that render, as
-    /// `--proposals-against` makes them in training (`Config::frames_from_residual` places
-    /// slots from them).
-    pub fn object_pixels(&self, model: &Colf) -> Result<&[f32]> {
-        if let Some(objects) = self.objects.get() {
-            return Ok(objects);
+    /// The object proposals (row-major ids, `crate::proposals`' meaning: 0 background, 1…254
+    /// instances, `UNSURE`) of this view against `model`'s background rendered alone at its
+    /// camera, as `--proposals-against` makes them in training. Meant for a model whose
+    /// background is static (the same street in every scene): the render is then what the view
+    /// shows without its objects.
+    pub fn proposal_ids(&self, model: &Colf) -> Result<&[u8]> {
+        if let Some(ids) = self.proposals.get() {
+            return Ok(ids);
         }
         let background = vec![0f32; model.config().slot_dim];
         let prepared = model.prepare(&[], &background)?;
@@ -73,7 +78,17 @@ impl<'a> InputView<'a> {
         )?;
         let ids =
             crate::train::known_background::proposals_against_render(self.image, &render.rgb)?;
-        let objects = crate::proposals::object_pixels(&ids);
+        Ok(self.proposals.get_or_init(|| ids))
+    }
+
+    /// The pixels (row-major, 1 or 0) that `model`'s background, rendered alone at this view's
+    /// camera, does not explain: the instances of [`InputView::proposal_ids`]
+    /// (`Config::frames_from_residual` places slots from them).
+    pub fn object_pixels(&self, model: &Colf) -> Result<&[f32]> {
+        if let Some(objects) = self.objects.get() {
+            return Ok(objects);
+        }
+        let objects = crate::proposals::object_pixels(self.proposal_ids(model)?);
         Ok(self.objects.get_or_init(|| objects))
     }
 

@@ -249,6 +249,14 @@ pub struct InferenceConfig {
     /// default, 1,024): a larger decoder can keep the encoding's cost with fewer.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine_rays: Option<usize>,
+    /// Refinement's mask loss against the views' object proposals, for a model with a static
+    /// background (`RefineOptions::mask_weight`; absent: `--refine-mask`'s default, 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_mask: Option<f64>,
+    /// Unsure proposal pixels within this many pixels of an object counted to it in that mask
+    /// loss (`RefineOptions::mask_claim`; absent: 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_mask_claim: Option<usize>,
 }
 
 /// Largest slot count an encoding accepts: slot attention runs with any K, but beyond this a
@@ -261,6 +269,8 @@ const MAX_INFERENCE_REFINE: usize = 100_000;
 /// Largest refinement learning rate a config or colf-encode's flags may ask for: latents live in
 /// a unit-scale space, so a step far above 1 can only overflow.
 pub const MAX_REFINE_LR: f64 = 100.0;
+/// Largest `inference.refine_mask_claim`, pixels (the trainer's claims are 1–3).
+const MAX_INFERENCE_MASK_CLAIM: usize = 64;
 /// Largest `inference.refine_rays`: a 1024² image's pixels (more is a typo, and memory).
 const MAX_INFERENCE_REFINE_RAYS: usize = 1 << 20;
 
@@ -274,6 +284,8 @@ impl InferenceConfig {
             refine_lr: None,
             refine_frame_lr: None,
             refine_rays: None,
+            refine_mask: None,
+            refine_mask_claim: None,
         }
     }
 }
@@ -643,6 +655,18 @@ impl Config {
                     "model config: `inference` needs 1 ≤ refine_rays ≤ {MAX_INFERENCE_REFINE_RAYS}"
                 );
             }
+            if inference
+                .refine_mask
+                .is_some_and(|w| !(w.is_finite() && w >= 0.0))
+                || inference
+                    .refine_mask_claim
+                    .is_some_and(|c| c > MAX_INFERENCE_MASK_CLAIM)
+            {
+                bail!("model config: `inference` needs refine_mask ≥ 0 and refine_mask_claim ≤ {MAX_INFERENCE_MASK_CLAIM}");
+            }
+            if inference.refine_mask.is_some_and(|w| w > 0.0) && !self.static_background {
+                bail!("model config: `inference.refine_mask` needs a static background (`static_background`): the proposals are made against its render");
+            }
             if self.volumetric.is_some() && inference.refine > 0 {
                 bail!("model config: `inference.refine` applies to light-field models, not the volumetric baseline");
             }
@@ -752,6 +776,8 @@ mod tests {
             refine_lr: None,
             refine_frame_lr: None,
             refine_rays: None,
+            refine_mask: None,
+            refine_mask_claim: None,
         };
         assert_eq!(cfg.default_inference(), measured);
         assert!(!cfg.to_json().contains("refine_lr"), "identities unchanged");
@@ -774,9 +800,26 @@ mod tests {
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_frame_lr":-1}"#,
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_rays":0}"#,
             r#"inference={"slots":7,"tries":1,"refine":9,"refine_rays":2000000}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_mask":-1}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_mask":1}"#,
+            r#"inference={"slots":7,"tries":1,"refine":9,"refine_mask_claim":65}"#,
         ] {
             assert!(small.with_overrides(&[bad.into()]).is_err(), "{bad}");
         }
+        // A static background may carry refinement's mask loss.
+        let city = small
+            .with_overrides(&[
+                "static_background=true".into(),
+                "zero_background=true".into(),
+                r#"inference={"slots":7,"tries":1,"refine":9,"refine_mask":1,"refine_mask_claim":3}"#
+                    .into(),
+            ])
+            .unwrap();
+        let inference = city.default_inference();
+        assert_eq!(
+            (inference.refine_mask, inference.refine_mask_claim),
+            (Some(1.0), Some(3))
+        );
         // Measured learning rates ride along, and a fixed frame (0) is allowed.
         let rates = small
             .with_overrides(&[

@@ -990,6 +990,91 @@ fn matched_targets(samples: &[SceneSample], weights: &[f32], s: usize) -> (Vec<u
     (index, valid)
 }
 
+/// The compositor's mask loss of one batch of rays against object proposals, as training's
+/// (`--mask-weight`), for test-time refinement: `log_weights` [1, R, S] (`Decoded`), `ids` the
+/// rays' proposal ids and `groups` the rays' views (ids are local to a view, so objects are
+/// matched to slots view by view). Rays whose matched slot is culled or out of reach there
+/// are left out; background and object rays carry half of the loss each.
+pub(crate) fn proposal_mask_loss(
+    log_weights: &Tensor,
+    ids: &[u8],
+    groups: &[usize],
+) -> Result<Tensor> {
+    let (_, r, s) = log_weights.dims3()?;
+    if ids.len() != r || groups.len() != r {
+        bail!(
+            "mask loss: {} ids and {} groups for {r} rays",
+            ids.len(),
+            groups.len()
+        );
+    }
+    let log_host = log_weights.flatten_all()?.to_vec1::<f32>()?;
+    let weights: Vec<f32> = log_host.iter().map(|l| l.exp()).collect();
+    let (mut index, mut valid) = (vec![0u32; r], vec![0f32; r]);
+    let mut names: Vec<usize> = groups.to_vec();
+    names.sort_unstable();
+    names.dedup();
+    for group in names {
+        let members: Vec<usize> = (0..r).filter(|&e| groups[e] == group).collect();
+        let group_ids: Vec<u8> = members.iter().map(|&e| ids[e]).collect();
+        let group_weights: Vec<f32> = members
+            .iter()
+            .flat_map(|&e| weights[e * s..(e + 1) * s].iter().copied())
+            .collect();
+        let (i, v) = match_objects(&group_ids, &group_weights, s, None);
+        for ((&e, i), v) in members.iter().zip(i).zip(v) {
+            index[e] = i;
+            valid[e] = v;
+        }
+    }
+    leave_out_culled(&mut index, &mut valid, &log_host, s);
+    let ray_weights = balanced_ray_weights(&index, &valid);
+    Ok(weighted_cross_entropy(log_weights, index, ray_weights)?)
+}
+
+/// [`proposal_mask_loss`] without the matching: an object ray asks only that *some*
+/// foreground slot draw it (−log Σₖ wₖ over the slots), a background ray that the background
+/// does (−log w₀), each kind carrying half of the loss; which slot draws which object is left
+/// to the colour loss. Rays that are neither (unsure), and object rays no slot can reach
+/// (culled or beyond reach), are left out. None when no ray is left.
+pub(crate) fn proposal_foreground_loss(log_weights: &Tensor, ids: &[u8]) -> Result<Option<Tensor>> {
+    let (_, r, s) = log_weights.dims3()?;
+    if ids.len() != r {
+        bail!("mask loss: {} ids for {r} rays", ids.len());
+    }
+    let log_host = log_weights.flatten_all()?.to_vec1::<f32>()?;
+    let reachable = |e: usize| {
+        log_host[e * s + 1..(e + 1) * s]
+            .iter()
+            .any(|&l| l > CULLED_LOG_WEIGHT)
+    };
+    let objects: Vec<u32> = (0..r)
+        .filter(|&e| is_instance(ids[e]) && reachable(e))
+        .map(|e| e as u32)
+        .collect();
+    let background: Vec<u32> = (0..r).filter(|&e| ids[e] == 0).map(|e| e as u32).collect();
+    let dev = log_weights.device();
+    let mean_log = |rays: &[u32], foreground: bool| -> Result<Option<Tensor>> {
+        if rays.is_empty() || (foreground && s < 2) {
+            return Ok(None);
+        }
+        let index = Tensor::from_vec(rays.to_vec(), rays.len(), dev)?;
+        let picked = log_weights.index_select(&index, 1)?;
+        let log_p = if foreground {
+            picked.narrow(2, 1, s - 1)?.log_sum_exp(2)?
+        } else {
+            picked.narrow(2, 0, 1)?.squeeze(2)?
+        };
+        Ok(Some(log_p.mean_all()?.neg()?))
+    };
+    Ok(
+        match (mean_log(&objects, true)?, mean_log(&background, false)?) {
+            (Some(o), Some(b)) => Some(((o + b)? * 0.5)?),
+            (one, other) => one.or(other),
+        },
+    )
+}
+
 /// Below this log weight a (ray, slot) pair was culled (`Config::cull_behind` pushes the slot
 /// 10⁶ units back: log weights near −10⁵) or the slot is absent (beyond `Config::slot_reach`:
 /// −∞); no score gap of a drawn slot comes near it.
@@ -1357,5 +1442,44 @@ mod tests {
         // Background only: the background rays carry everything.
         let w = balanced_ray_weights(&[0, 0], &[1.0, 1.0]);
         assert_eq!(w, vec![0.5, 0.5]);
+    }
+
+    /// The unmatched mask loss of refinement: −½ mean log(Σ foreground weights) over the object
+    /// rays that some slot reaches, −½ mean log(background weight) over the background rays;
+    /// unsure rays and unreachable object rays left out; None when no ray is left.
+    #[test]
+    fn the_foreground_loss_asks_objects_of_any_slot_and_the_background_of_itself() {
+        use crate::proposals::UNSURE;
+        let dev = candle_core::Device::Cpu;
+        // Rays × (background, slot 1, slot 2) weights.
+        let weights: [[f32; 3]; 5] = [
+            [0.2, 0.5, 0.3],   // object
+            [0.6, 0.1, 0.3],   // object
+            [0.9, 0.05, 0.05], // background
+            [0.5, 0.25, 0.25], // unsure: left out
+            [1.0, 0.0, 0.0],   // object no slot reaches (log weight −∞): left out
+        ];
+        let log: Vec<f32> = weights.iter().flatten().map(|w| w.ln()).collect();
+        let log_weights = Tensor::from_vec(log, (1, 5, 3), &dev).unwrap();
+        let ids = [1, 2, 0, UNSURE, 1];
+        let loss = proposal_foreground_loss(&log_weights, &ids)
+            .unwrap()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        let objects = -(0.8f32.ln() + 0.4f32.ln()) / 2.0;
+        let background = -0.9f32.ln();
+        let expected = 0.5 * objects + 0.5 * background;
+        assert!((loss - expected).abs() < 1e-5, "{loss} vs {expected}");
+        // Objects only, then nothing to ask.
+        let only = proposal_foreground_loss(&log_weights.narrow(1, 0, 2).unwrap(), &ids[..2])
+            .unwrap()
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        assert!((only - objects).abs() < 1e-5);
+        let unsure = proposal_foreground_loss(&log_weights.narrow(1, 3, 1).unwrap(), &[UNSURE]);
+        assert!(unsure.unwrap().is_none());
+        assert!(proposal_foreground_loss(&log_weights, &ids[..2]).is_err());
     }
 }
