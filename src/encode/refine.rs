@@ -65,11 +65,11 @@ pub struct RefineOptions {
     /// training), objects matched to slots view by view, as the trainer's `--mask-weight`
     /// (0: colour alone). The colour loss alone lets the background keep an object's pixels
     /// that look like it (a dark car's wheels on a dark road). Not serialised when 0.
-    #[serde(skip_serializing_if = "is_zero_f64")]
+    #[serde(skip_serializing_if = "crate::model::config::is_zero")]
     pub mask_weight: f64,
     /// With `mask_weight`: proposal pixels left unsure within this many pixels of an object
     /// are counted to it, as the trainer's `--mask-claim`. Not serialised when 0.
-    #[serde(skip_serializing_if = "is_zero_usize")]
+    #[serde(skip_serializing_if = "crate::model::config::is_zero_count")]
     pub mask_claim: usize,
     /// With `mask_weight`: match each view's objects to slots and ask each object's pixels of
     /// its slot, as training does; without, an object's pixels ask only that some slot draw
@@ -78,14 +78,6 @@ pub struct RefineOptions {
     pub mask_match: bool,
     /// Seed of the pixel subsets.
     pub seed: u64,
-}
-
-fn is_zero_f64(x: &f64) -> bool {
-    *x == 0.0
-}
-
-fn is_zero_usize(x: &usize) -> bool {
-    *x == 0
 }
 
 impl Default for RefineOptions {

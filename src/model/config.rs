@@ -4,11 +4,11 @@
 use anyhow::{bail, Context, Result};
 use serde::{Deserialize, Serialize};
 
-fn is_zero(v: &f64) -> bool {
+pub(crate) fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
-fn is_zero_count(v: &usize) -> bool {
+pub(crate) fn is_zero_count(v: &usize) -> bool {
     *v == 0
 }
 
