@@ -702,6 +702,10 @@ CITY_CLAIM := --mask-claim 3
 # them only 0.23 dB better at step 20,000 than at 8,000 (29.56 against 29.33 dB;
 # docs/training-log.md, "The city model"), and the test protocol is at 128², where a car has four
 # times the pixels: c2 gets the core sooner.
+# c2 runs 10,000 steps at 128² (it was to run 50,000): at its step 7,500 the 100 test streets
+# scored FG-ARI 0.838 with the encoding-time mask loss (the issue's target: 0.8), and this machine
+# lost ~/colf-runs, and every run in it, in two of the three sessions before 2026-12-01: a run
+# that needs five sessions did not finish (docs/training-log.md, "The city model").
 model-city: build
 	@mkdir -p $(CITY_RUN)/data
 	$(call unlabelled_set,$(CITY_RUN)/data/train,500,--preset city-block)
@@ -724,7 +728,7 @@ model-city: build
 	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
 	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) $(CITY_CLAIM) \
 	  --data $(CITY_RUN)/data/train128 --eval-data $(CITY_RUN)/data/val128 --out $(CITY_RUN)/c2.safetensors \
-	  --steps 50000 --lr 2e-5 --warmup 100 --decay-from 35000 --final-lr 2e-6 \
+	  --steps 10000 --lr 2e-5 --warmup 100 --decay-from 6000 --final-lr 2e-6 \
 	  $(call resume_or_init,$(CITY_RUN)/c2.safetensors,$(CITY_RUN)/c1.safetensors)
 	$(RELEASE)/colf-train plot $(CITY_RUN)/c0.safetensors.log.jsonl $(CITY_RUN)/c1.safetensors.log.jsonl \
 	  $(CITY_RUN)/c2.safetensors.log.jsonl --label c0 --label c1 --label c2 -o $(CITY_RUN)/training.png
