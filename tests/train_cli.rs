@@ -475,6 +475,23 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
         settings(&eval(&["--refine", "0", "--slots", "4"])),
         (4, 2, 0)
     );
+    // One member of the model's encoding changes alone, the rest kept.
+    let retried = dir.path().join("retried.safetensors");
+    Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("configure")
+        .arg(&configured)
+        .args(["--set", "inference.tries=3", "-o"])
+        .arg(&retried)
+        .assert()
+        .success();
+    let retried = colf::model::Colf::load(&retried).unwrap();
+    let inference = retried.config().default_inference();
+    assert_eq!(
+        (inference.slots, inference.tries, inference.refine),
+        (3, 3, 1)
+    );
+    assert_eq!(inference.refine_rays, Some(64));
     // A setting that changes a tensor is one error line naming the file, and no output.
     let wider = dir.path().join("wider.safetensors");
     let assert = Command::cargo_bin("colf-train")
@@ -490,6 +507,20 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
     assert!(stderr.contains("start.safetensors"), "{stderr}");
     assert!(stderr.contains("tensors"), "{stderr}");
     assert!(!wider.exists());
+    // So is a member the model's settings refuse: the mask loss needs a static background.
+    let masked = dir.path().join("masked.safetensors");
+    let assert = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("configure")
+        .arg(&configured)
+        .args(["--set", "inference.refine_mask=0.3", "-o"])
+        .arg(&masked)
+        .assert()
+        .code(1);
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.contains("static background"), "{stderr}");
+    assert!(!masked.exists());
 }
 
 #[test]

@@ -415,7 +415,7 @@ pub fn run_info(args: &InfoArgs) -> anyhow::Result<()> {
 #[derive(Args, Debug)]
 #[command(
     about = "Change settings of a model's config that keep its weights",
-    long_about = "Write MODEL to OUT (atomically; `-` for stdout, refused on a terminal) with config settings changed by --set KEY=VALUE (the value is JSON; keys as in docs/model.md). Only settings that keep every tensor's name and shape are accepted, so the weights are copied unchanged; the config, and so the identity, change. The main use is `inference`, the encoding colf-encode and colf-eval use with this model when their flags do not say, e.g. --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' (--set inference=null removes it). --half writes every tensor of 16,384 values or more (all weight matrices but the smallest: over 99 % of a paper-sized decoder's values; the biases and norms stay f32) in IEEE half precision, about half the file; the weights are then rounded, so the identity changes and the scores should be checked (colf-eval). A model read with half tensors keeps them half when configured again. The new identity is printed on stderr.",
+    long_about = "Write MODEL to OUT (atomically; `-` for stdout, refused on a terminal) with config settings changed by --set KEY=VALUE (the value is JSON; keys as in docs/model.md). Only settings that keep every tensor's name and shape are accepted, so the weights are copied unchanged; the config, and so the identity, change. The main use is `inference`, the encoding colf-encode and colf-eval use with this model when their flags do not say, e.g. --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' (--set inference=null removes it; --set inference.refine=50 changes one member of the model's own). --half writes every tensor of 16,384 values or more (all weight matrices but the smallest: over 99 % of a paper-sized decoder's values; the biases and norms stay f32) in IEEE half precision, about half the file; the weights are then rounded, so the identity changes and the scores should be checked (colf-eval). A model read with half tensors keeps them half when configured again. The new identity is printed on stderr.",
     after_help = "Examples:\n  colf-train configure stage6.safetensors --set 'inference={\"slots\":12,\"tries\":4,\"refine\":50}' -o model.safetensors\n  colf-train configure big.safetensors --half -o small.safetensors"
 )]
 pub struct ConfigureArgs {
@@ -423,7 +423,7 @@ pub struct ConfigureArgs {
     #[arg(value_name = "MODEL")]
     pub model: std::path::PathBuf,
 
-    /// A config setting to change, KEY=VALUE (repeatable).
+    /// A config setting to change, KEY=VALUE or SETTING.MEMBER=VALUE (repeatable).
     #[arg(
         long = "set",
         value_name = "KEY=VALUE",

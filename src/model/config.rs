@@ -493,8 +493,10 @@ impl Config {
     }
 
     /// Applies `key=value` overrides (the value is JSON, or else a bare string) to this config,
-    /// for experiments and recipes: `ray_fourier_freqs=6`, `zero_background=true`. Unknown keys
-    /// and ill-typed values are refused, and the result is validated.
+    /// for experiments and recipes: `ray_fourier_freqs=6`, `zero_background=true`, and one
+    /// member of a setting that is an object, `inference.refine_mask=0.3` (the rest of it kept;
+    /// the setting must be there). Unknown keys and ill-typed values are refused, and the
+    /// result is validated.
     pub fn with_overrides(&self, overrides: &[String]) -> Result<Config> {
         if overrides.is_empty() {
             return Ok(self.clone());
@@ -508,7 +510,24 @@ impl Config {
             let key = key.trim();
             let parsed = serde_json::from_str(text.trim())
                 .unwrap_or_else(|_| serde_json::Value::String(text.trim().to_string()));
-            object.insert(key.to_string(), parsed);
+            match key.split_once('.') {
+                None => {
+                    object.insert(key.to_string(), parsed);
+                }
+                Some((setting, member)) => {
+                    match object.get_mut(setting) {
+                        Some(serde_json::Value::Object(members)) => {
+                            members.insert(member.to_string(), parsed);
+                        }
+                        Some(serde_json::Value::Null) | None => bail!(
+                            "config override `{key}`: this model has no `{setting}` to change; set it whole, `{setting}={{…}}`"
+                        ),
+                        Some(_) => bail!(
+                            "config override `{key}`: `{setting}` is a value, not a setting with members"
+                        ),
+                    }
+                }
+            }
         }
         let cfg: Config =
             serde_json::from_value(value).map_err(|e| anyhow::anyhow!("config override: {e}"))?;
@@ -820,6 +839,36 @@ mod tests {
             (inference.refine_mask, inference.refine_mask_claim),
             (Some(1.0), Some(3))
         );
+        // One member is set alone, the others kept; and only where the setting is there.
+        let with_mask = city
+            .with_overrides(&["inference.refine_mask=0.3".into()])
+            .unwrap();
+        let inference = with_mask.default_inference();
+        assert_eq!(
+            (
+                inference.slots,
+                inference.refine_mask,
+                inference.refine_mask_claim
+            ),
+            (7, Some(0.3), Some(3))
+        );
+        for bad in [
+            "inference.refine_mask=-1",
+            "inference.no_such_member=1",
+            "inference.slots=many",
+        ] {
+            assert!(city.with_overrides(&[bad.into()]).is_err(), "{bad}");
+        }
+        let unset = format!(
+            "{:#}",
+            small
+                .with_overrides(&["inference.refine=50".into()])
+                .unwrap_err()
+        );
+        assert!(unset.contains("no `inference` to change"), "{unset}");
+        assert!(small
+            .with_overrides(&["lfn_hidden.width=3".into()])
+            .is_err());
         // Measured learning rates ride along, and a fixed frame (0) is allowed.
         let rates = small
             .with_overrides(&[
