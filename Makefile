@@ -579,8 +579,9 @@ model-city-then-room-diverse:
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the default
 # clevr567 model (p12's final model: the paper-sized decoder, 384-value slots, a hidden layer per
 # light-field layer in each hypernetwork, shadow lines and slots within 3 units) adapted to each
-# room set without labels, the paper's curriculum — 64², then 128² (cut short: below) — on unlabelled colf-synth room scenes (the paper's 1,000 and 5,000 training
-# scenes; mask files deleted), proposals for the compositor and attention mask losses as in the
+# room set without labels, the paper's curriculum — 64², then 128² (cut short: below) — on
+# unlabelled colf-synth room scenes (the paper's 1,000 and 5,000 training scenes; mask files
+# deleted), proposals for the compositor and attention mask losses as in the
 # small model's stages u1–u4 (without the compositor's, the background, which reads the image,
 # drew the chairs: docs/training-log.md). At the start the model is grown to hypernetworks 256
 # wide and floor features (ROOM_WIDE_SETS, below). Held-out: 16 validation scenes (64², then

@@ -492,35 +492,29 @@ fn configure_keeps_the_weights_and_sets_the_default_encoding() {
         (3, 3, 1)
     );
     assert_eq!(inference.refine_rays, Some(64));
-    // A setting that changes a tensor is one error line naming the file, and no output.
-    let wider = dir.path().join("wider.safetensors");
-    let assert = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("configure")
-        .arg(&start)
-        .args(["--set", "lfn_features=16", "-o"])
-        .arg(&wider)
-        .assert()
-        .code(1);
-    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
-    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    // A refused setting is one error line (returned) and no output.
+    let refused = |model: &std::path::Path, setting: &str| -> String {
+        let out = dir.path().join("refused.safetensors");
+        let assert = Command::cargo_bin("colf-train")
+            .unwrap()
+            .arg("configure")
+            .arg(model)
+            .args(["--set", setting, "-o"])
+            .arg(&out)
+            .assert()
+            .code(1);
+        let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
+        assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+        assert!(!out.exists());
+        stderr
+    };
+    // A setting that changes a tensor, naming the file.
+    let stderr = refused(&start, "lfn_features=16");
     assert!(stderr.contains("start.safetensors"), "{stderr}");
     assert!(stderr.contains("tensors"), "{stderr}");
-    assert!(!wider.exists());
-    // So is a member the model's settings refuse: the mask loss needs a static background.
-    let masked = dir.path().join("masked.safetensors");
-    let assert = Command::cargo_bin("colf-train")
-        .unwrap()
-        .arg("configure")
-        .arg(&configured)
-        .args(["--set", "inference.refine_mask=0.3", "-o"])
-        .arg(&masked)
-        .assert()
-        .code(1);
-    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).to_string();
-    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    // A member the model's settings refuse: the mask loss needs a static background.
+    let stderr = refused(&configured, "inference.refine_mask=0.3");
     assert!(stderr.contains("static background"), "{stderr}");
-    assert!(!masked.exists());
 }
 
 #[test]
