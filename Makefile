@@ -558,12 +558,11 @@ model-paper-wide: build
 # target without a running `make TARGET` is started in the background with the threads its entry
 # names (TARGET:LOG[:THREADS], one unless given), its output appended to its log. Run it at the
 # start of every session. RESUME_RUNS lists them: the city, then Room-Diverse
-# (model-city-then-room-diverse), and the room-chair run, one a core. Until c2 is done the city
-# holds both cores (two threads: 1.44x one thread's steps, measured on c1's recipe) so that issue
-# 39 closes a session sooner, and the room-chair run waits (docs/training-log.md says how the
-# cores are split); then back to one each:
-#   RESUME_RUNS = model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log model-room-chair:$(ROOM_RUN)/room-chair.log
-RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log:2
+# (model-city-then-room-diverse; the city is done, so it passes on to Room-Diverse), and the
+# room-chair run, one a core (docs/training-log.md says how the cores were split; the city's c2
+# had both, two threads: 1.44x one thread's steps, measured on c1's recipe).
+RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log \
+  model-room-chair:$(ROOM_RUN)/room-chair.log
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
