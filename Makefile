@@ -170,8 +170,9 @@ eval-sheet: build
 # along the same street with its time and peak memory (GNU time) in $(CITY_DEMO)/traffic-time.txt.
 # The sheet: row 1 street 0's two context views; rows 2–3 the drive and its masks (one colour a
 # slot); row 4 the edited drive; rows 5–6 the merged traffic and its masks. CITY_MODEL: the
-# city model (make model-city). 20 streets: the default encoding keeps about 3.6 slots a street
-# (docs/training-log.md, "The city model"), so the merged scene holds 60 or more.
+# city model (make model-city). 20 streets: the default encoding keeps about 4 slots a street
+# (docs/training-log.md, "The city model"), so the merged scene holds 60 or more (81 with the
+# final city model, from the streets' 98 cars).
 CITY_DEMO := out/demo-city
 CITY_STREETS ?= 20
 CITY_MODEL ?= $(CITY_RUN)/city.safetensors
