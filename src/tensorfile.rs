@@ -108,6 +108,37 @@ pub fn serialize(
     out
 }
 
+/// The `__metadata__` of the safetensors file at `path`, read from its header alone (a
+/// checkpoint's step without reading its hundreds of megabytes of weights).
+pub fn read_header_metadata(path: &std::path::Path) -> Result<BTreeMap<String, String>> {
+    use std::io::Read;
+    let name = path.display();
+    let mut file = std::fs::File::open(path).map_err(|e| anyhow!("{name}: cannot open ({e})"))?;
+    let mut len = [0u8; 8];
+    file.read_exact(&mut len)
+        .map_err(|_| anyhow!("{name}: not a safetensors file (under 8 bytes)"))?;
+    let len = u64::from_le_bytes(len);
+    // The header is JSON; anything near this size is a damaged length, not a header.
+    if len > 100_000_000 {
+        bail!("{name}: not a safetensors file (header length {len})");
+    }
+    let mut header = vec![0u8; len as usize];
+    file.read_exact(&mut header)
+        .map_err(|_| anyhow!("{name}: not a safetensors file (header cut short)"))?;
+    let header: serde_json::Value = serde_json::from_slice(&header)
+        .map_err(|e| anyhow!("{name}: not a safetensors file (header: {e})"))?;
+    let mut metadata = BTreeMap::new();
+    if let Some(map) = header.get("__metadata__").and_then(|m| m.as_object()) {
+        for (key, value) in map {
+            let value = value
+                .as_str()
+                .ok_or_else(|| anyhow!("{name}: metadata `{key}` is not a string"))?;
+            metadata.insert(key.clone(), value.to_string());
+        }
+    }
+    Ok(metadata)
+}
+
 /// A parsed safetensors file with its metadata.
 pub struct TensorFile<'a> {
     pub tensors: SafeTensors<'a>,
@@ -289,6 +320,40 @@ mod tests {
             assert!(format!("{err}").starts_with("cut.safetensors: "));
         }
         assert!(TensorFile::parse(b"hello world, not a tensor file", "g").is_err());
+    }
+
+    #[test]
+    fn header_metadata_reads_without_the_data() {
+        let dir = tempfile::tempdir().unwrap();
+        let a = [1.0f32; 8];
+        let mut meta = BTreeMap::new();
+        meta.insert("step".to_string(), "12".to_string());
+        let bytes = serialize_f32(
+            &[F32Tensor {
+                name: "a",
+                shape: vec![8],
+                data: &a,
+            }],
+            &meta,
+        );
+        let path = dir.path().join("m.safetensors");
+        std::fs::write(&path, &bytes).unwrap();
+        assert_eq!(read_header_metadata(&path).unwrap(), meta);
+        // The header alone is enough: the data cut off still reads.
+        let header_len = 8 + u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+        std::fs::write(&path, &bytes[..header_len]).unwrap();
+        assert_eq!(read_header_metadata(&path).unwrap(), meta);
+        // A header cut short, garbage, and a missing file: errors naming the file.
+        for junk in [
+            &bytes[..header_len - 1],
+            b"hello world, not a tensor",
+            b"abc",
+        ] {
+            std::fs::write(&path, junk).unwrap();
+            let err = read_header_metadata(&path).unwrap_err().to_string();
+            assert!(err.starts_with(&path.display().to_string()), "{err}");
+        }
+        assert!(read_header_metadata(&dir.path().join("none")).is_err());
     }
 
     #[test]

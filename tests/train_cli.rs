@@ -116,6 +116,27 @@ fn a_resumed_run_matches_an_uninterrupted_one() {
         std::fs::read(&straight).unwrap()
     );
     assert!(!kept(5).exists());
+    // Resuming the finished run trains nothing and leaves the model as it was; it does not
+    // read the data (gone here) to find that out.
+    let model_before = std::fs::read(&straight).unwrap();
+    let moved = dir.path().join("data-moved");
+    std::fs::rename(&data, &moved).unwrap();
+    let done = Command::cargo_bin("colf-train")
+        .unwrap()
+        .arg("--data")
+        .arg(&data)
+        .arg("--out")
+        .arg(&straight)
+        .args(["--steps", "12", "--resume"])
+        .assert()
+        .success();
+    let stderr = String::from_utf8_lossy(&done.get_output().stderr).to_string();
+    assert!(
+        stderr.contains("is done (its checkpoint is at step 12 of 12)"),
+        "{stderr}"
+    );
+    assert_eq!(std::fs::read(&straight).unwrap(), model_before);
+    std::fs::rename(&moved, &data).unwrap();
     // `colf-train average` of the two kept models is a model; a model and a file that is not
     // one give one error line naming the file, exit 1, and no output.
     let mean = dir.path().join("mean.safetensors");

@@ -64,7 +64,8 @@ pub struct RunArgs {
     #[arg(long, value_name = "MODEL", conflicts_with = "resume")]
     pub init: Option<String>,
 
-    /// Continue the run saved in OUT.ckpt (model, optimizer moments and step) up to --steps.
+    /// Continue the run saved in OUT.ckpt (model, optimizer moments and step) up to --steps. A
+    /// run whose checkpoint has reached --steps is done: nothing is read or written.
     #[arg(long)]
     pub resume: bool,
 
@@ -723,6 +724,16 @@ pub fn run_training(args: &RunArgs) -> anyhow::Result<()> {
     use std::io::{IsTerminal, Write};
 
     let opts = args.train_options()?;
+    if args.resume {
+        if let Some(step) = crate::train::trainer::finished_step(&opts)? {
+            eprintln!(
+                "colf-train: {} is done (its checkpoint is at step {step} of {}); nothing to train",
+                opts.out.display(),
+                args.steps
+            );
+            return Ok(());
+        }
+    }
     // The first SIGINT/SIGTERM stops training at the end of the step, after a checkpoint.
     let stop = crate::io::defer_signals();
     let mut trainer = Trainer::new(opts, args.resume)?;

@@ -850,6 +850,30 @@ impl Trainer {
     }
 }
 
+/// With `--resume`: the step of OUT's checkpoint when it has already reached `opts.steps` and
+/// OUT is there, so the run is done; read from the checkpoint's header before any data, which
+/// a finished run does not need (loading a large set and its proposals takes minutes).
+pub fn finished_step(opts: &TrainOptions) -> Result<Option<u64>> {
+    let path = opts.checkpoint_path();
+    if !path.is_file() || !opts.out.is_file() {
+        return Ok(None);
+    }
+    let meta = crate::tensorfile::read_header_metadata(&path)?;
+    if meta.get("format").map(String::as_str) != Some(CHECKPOINT_FORMAT) {
+        bail!("{}: not a colf training checkpoint", path.display());
+    }
+    let step: u64 = meta
+        .get("step")
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| {
+            anyhow!(
+                "{}: metadata `step` is missing or not a number",
+                path.display()
+            )
+        })?;
+    Ok((step >= opts.steps).then_some(step))
+}
+
 /// A training checkpoint as read back.
 struct SavedRun {
     colf: Colf,
