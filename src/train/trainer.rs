@@ -859,19 +859,23 @@ pub fn finished_step(opts: &TrainOptions) -> Result<Option<u64>> {
         return Ok(None);
     }
     let meta = crate::tensorfile::read_header_metadata(&path)?;
-    if meta.get("format").map(String::as_str) != Some(CHECKPOINT_FORMAT) {
-        bail!("{}: not a colf training checkpoint", path.display());
-    }
-    let step: u64 = meta
-        .get("step")
-        .and_then(|s| s.parse().ok())
-        .ok_or_else(|| {
-            anyhow!(
-                "{}: metadata `step` is missing or not a number",
-                path.display()
-            )
-        })?;
+    let step = checkpoint_number(&meta, &path.display().to_string(), "step")?;
     Ok((step >= opts.steps).then_some(step))
+}
+
+/// Metadata value `key` of a training checkpoint's header `meta` (file `name`) as a number,
+/// after checking that the file is a colf training checkpoint.
+fn checkpoint_number(meta: &BTreeMap<String, String>, name: &str, key: &str) -> Result<u64> {
+    let entry = |k: &str| {
+        meta.get(k)
+            .ok_or_else(|| anyhow!("{name}: metadata key `{k}` is missing"))
+    };
+    if entry("format")? != CHECKPOINT_FORMAT {
+        bail!("{name}: not a colf training checkpoint");
+    }
+    entry(key)?
+        .parse()
+        .map_err(|_| anyhow!("{name}: metadata `{key}` is not a number"))
 }
 
 /// A training checkpoint as read back.
@@ -887,17 +891,10 @@ struct SavedRun {
 /// bad steps and the run's initial model.
 fn load_checkpoint(bytes: &[u8], name: &str) -> Result<SavedRun> {
     let file = TensorFile::parse(bytes, name)?;
-    if file.require_metadata("format")? != CHECKPOINT_FORMAT {
-        bail!("{name}: not a colf training checkpoint");
-    }
+    let step = checkpoint_number(&file.metadata, name, "step")?;
+    let bad = checkpoint_number(&file.metadata, name, "bad_steps")?;
     let config = Config::from_json(file.require_metadata("config")?)
         .with_context(|| format!("{name}: config"))?;
-    let number = |key: &str| -> Result<u64> {
-        file.require_metadata(key)?
-            .parse()
-            .map_err(|_| anyhow!("{name}: metadata `{key}` is not a number"))
-    };
-    let (step, bad) = (number("step")?, number("bad_steps")?);
     let mut host: HostParams = BTreeMap::new();
     for tensor in file.tensors.names() {
         if let Some(param) = tensor.strip_prefix("model/") {
