@@ -18,7 +18,7 @@ use crate::dataset::{Dataset, SceneData};
 use crate::encode::multiview::{encode_views, ViewInput};
 use crate::encode::refine::{refine_slots, RefineOptions};
 use crate::encode::{EncodeOptions, InputView};
-use crate::metrics::{ari, fg_ari, mean_std, psnr, ssim};
+use crate::metrics::{ari, fg_ari, mean_std, psnr, region_psnr, ssim};
 use crate::model::Colf;
 use crate::render::output::FrameRender;
 use crate::render::PreparedScene;
@@ -32,6 +32,10 @@ pub struct SceneScores {
     /// Mean PSNR of the novel views (dB).
     pub psnr: Option<f64>,
     pub ssim: Option<f64>,
+    /// PSNR of the novel views over their ground-truth object pixels, and over the rest
+    /// (floor, walls, sky), each averaged over the views where its region has pixels.
+    pub object_psnr: Option<f64>,
+    pub background_psnr: Option<f64>,
     /// PSNR of the input view's reconstruction.
     pub input_psnr: Option<f64>,
     pub ari: Option<f64>,
@@ -151,6 +155,10 @@ pub struct DatasetScores {
     pub psnr_std: Option<f64>,
     pub ssim: Option<f64>,
     pub ssim_std: Option<f64>,
+    pub object_psnr: Option<f64>,
+    pub object_psnr_std: Option<f64>,
+    pub background_psnr: Option<f64>,
+    pub background_psnr_std: Option<f64>,
     pub input_psnr: Option<f64>,
     pub input_psnr_std: Option<f64>,
     pub ari: Option<f64>,
@@ -191,9 +199,11 @@ pub struct DatasetScores {
 }
 
 /// The quality scores of [`DatasetScores`] that carry a mean and a standard deviation, by name.
-pub const QUALITY_SCORES: [&str; 7] = [
+pub const QUALITY_SCORES: [&str; 9] = [
     "psnr",
     "ssim",
+    "object_psnr",
+    "background_psnr",
     "input_psnr",
     "ari",
     "fg_ari",
@@ -211,6 +221,8 @@ impl DatasetScores {
         let stat = |f: fn(&SceneScores) -> Option<f64>| mean_std(rows.iter().map(f));
         let (psnr, psnr_std) = stat(|r| r.psnr);
         let (ssim, ssim_std) = stat(|r| r.ssim);
+        let (object_psnr, object_psnr_std) = stat(|r| r.object_psnr);
+        let (background_psnr, background_psnr_std) = stat(|r| r.background_psnr);
         let (input_psnr, input_psnr_std) = stat(|r| r.input_psnr);
         let (ari, ari_std) = stat(|r| r.ari);
         let (fg_ari, fg_ari_std) = stat(|r| r.fg_ari);
@@ -243,6 +255,10 @@ impl DatasetScores {
             psnr_std,
             ssim,
             ssim_std,
+            object_psnr,
+            object_psnr_std,
+            background_psnr,
+            background_psnr_std,
             input_psnr,
             input_psnr_std,
             ari,
@@ -414,6 +430,7 @@ pub fn score_scene(
         ..Default::default()
     };
     let (mut psnrs, mut ssims) = (Vec::new(), Vec::new());
+    let (mut object_psnrs, mut background_psnrs) = (Vec::new(), Vec::new());
     let (mut nv_aris, mut nv_fg_aris) = (Vec::new(), Vec::new());
     let (mut input_psnrs, mut input_aris, mut input_fg_aris) = (Vec::new(), Vec::new(), Vec::new());
     let (mut multi_fg_aris, mut nv_multi_fg_aris) = (Vec::new(), Vec::new());
@@ -473,6 +490,10 @@ pub fn score_scene(
                 row.lone.lone_object_whole += lone_whole;
             }
             if novel {
+                let inside: Vec<bool> = mask.iter().map(|&m| m != 0).collect();
+                let (object, background) = region_psnr(&render.rgb, &view.image.data, &inside)?;
+                object_psnrs.extend(object);
+                background_psnrs.extend(background);
                 nv_aris.push(full);
                 nv_fg_aris.extend(fga);
                 nv_multi_fg_aris.extend(multi);
@@ -490,6 +511,8 @@ pub fn score_scene(
     row.fg_ari = avg(&input_fg_aris);
     row.psnr = avg(&psnrs);
     row.ssim = avg(&ssims);
+    row.object_psnr = avg(&object_psnrs);
+    row.background_psnr = avg(&background_psnrs);
     row.nv_ari = avg(&nv_aris);
     row.nv_fg_ari = avg(&nv_fg_aris);
     row.lone.fg_ari_multi = avg(&multi_fg_aris);

@@ -7,6 +7,7 @@
 //!   use_sample_covariance=False, data_range=1.0, channel_axis=-1)`: an 11×11 Gaussian window
 //!   (σ = 1.5, truncated at 3.5 σ → radius 5), k1 = 0.01, k2 = 0.03, the SSIM map averaged over
 //!   the valid region only (5 pixels cropped from every border), then over channels.
+//! - [`region_psnr`]: [`psnr`] over a region's pixels and over the rest.
 //! - [`ari`]: scikit-learn's `adjusted_rand_score`, from the contingency table with exact
 //!   integer pair counts.
 //! - [`fg_ari`]: ARI over the pixels whose ground-truth label is not 0 (the background).
@@ -64,6 +65,42 @@ pub fn mse(pred: &[f32], gt: &[f32]) -> Result<f64> {
 /// (`colf-eval` prints it as JSON `null`, see [`ImageScores`]).
 pub fn psnr(pred: &[f32], gt: &[f32]) -> Result<f64> {
     Ok(psnr_from_mse(mse(pred, gt)?))
+}
+
+/// The PSNR of [`psnr`] over two regions of an image: the pixels where `inside` holds, and the
+/// rest (`pred` and `gt` hold `inside.len()` pixels of equally many channels). `None` for a
+/// region without pixels. `colf-eval --data` splits the novel views' PSNR this way by the
+/// ground-truth masks (`object_psnr`, `background_psnr`).
+pub fn region_psnr(
+    pred: &[f32],
+    gt: &[f32],
+    inside: &[bool],
+) -> Result<(Option<f64>, Option<f64>)> {
+    check_pair(pred, gt)?;
+    if inside.is_empty() || !pred.len().is_multiple_of(inside.len()) {
+        bail!(
+            "the images have {} values, not a whole number of channels for {} pixels",
+            pred.len(),
+            inside.len()
+        );
+    }
+    let channels = pred.len() / inside.len();
+    // [sum of squared errors, values] inside and outside.
+    let mut sums = [[0.0f64; 2]; 2];
+    for ((a, b), &is_in) in pred
+        .chunks_exact(channels)
+        .zip(gt.chunks_exact(channels))
+        .zip(inside)
+    {
+        let sum = &mut sums[usize::from(!is_in)];
+        for (&x, &y) in a.iter().zip(b) {
+            let d = x as f64 - y as f64;
+            sum[0] += d * d;
+        }
+        sum[1] += channels as f64;
+    }
+    let region = |[squared, n]: [f64; 2]| (n > 0.0).then(|| psnr_from_mse(squared / n));
+    Ok((region(sums[0]), region(sums[1])))
 }
 
 /// PSNR in dB of a mean squared error for values in [0, 1]: `10 log10(1 / mse)`, `+inf` at 0.
@@ -323,6 +360,28 @@ mod tests {
         pred[3] = 1.0;
         close(psnr(&pred, &[0.0; 100]).unwrap(), 20.0, 1e-12);
         assert_eq!(psnr(&gt, &gt).unwrap(), f64::INFINITY);
+    }
+
+    #[test]
+    fn region_psnr_splits_the_error() {
+        // Two RGB pixels: the first (inside) off by 0.1 in every channel, the second by 0.01.
+        let gt = [0.5f32; 6];
+        let pred = [0.6f32, 0.6, 0.6, 0.51, 0.51, 0.51];
+        let (inside, outside) = region_psnr(&pred, &gt, &[true, false]).unwrap();
+        close(inside.unwrap(), 20.0, 1e-5);
+        close(outside.unwrap(), 40.0, 1e-4);
+        // A region without pixels has no PSNR; the whole image is the other region.
+        let (none, all) = region_psnr(&pred, &gt, &[false, false]).unwrap();
+        assert_eq!(none, None);
+        close(all.unwrap(), psnr(&pred, &gt).unwrap(), 1e-12);
+        assert_eq!(
+            region_psnr(&gt, &gt, &[true, false]).unwrap().0,
+            Some(f64::INFINITY)
+        );
+        // Sizes that do not match are refused.
+        assert!(region_psnr(&pred, &gt, &[true; 4]).is_err());
+        assert!(region_psnr(&pred, &gt, &[]).is_err());
+        assert!(region_psnr(&pred[..3], &gt, &[true]).is_err());
     }
 
     #[test]

@@ -184,6 +184,7 @@ fn help_documents_the_json_of_both_modes() {
         "models/uorf_eval_model.py",
         "background included",
         "nv_fg_ari",
+        "object_psnr",
         "NAME_std",
         "NAME_seed_std",
         "--seeds",
@@ -235,6 +236,8 @@ fn dataset_scores_follow_the_published_definitions() {
     for name in [
         "psnr",
         "ssim",
+        "object_psnr",
+        "background_psnr",
         "input_psnr",
         "ari",
         "fg_ari",

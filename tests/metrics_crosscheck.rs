@@ -4,7 +4,8 @@
 //! fg_ari, nv_ari and nv_fg_ari (means and standard deviations over scenes) are those of uORF's
 //! evaluation code recomputed with `adjusted_rand_score` from the renders it saved: NV-ARI of
 //! the full label maps, background included, and on city streets with one car in view the FG-ARI
-//! split by objects in view (tests/python/metrics_crosscheck.py).
+//! split by objects in view, and the novel views' PSNR over the ground-truth object pixels and
+//! over the rest, recomputed with `peak_signal_noise_ratio` (tests/python/metrics_crosscheck.py).
 //! Needs `python3` with numpy, scipy, Pillow, scikit-image and scikit-learn (`.ci/run` installs
 //! them).
 
@@ -71,11 +72,12 @@ fn colf_eval_agrees_with_scikit_image_and_scikit_learn() {
         String::from_utf8_lossy(&out.stderr)
     );
     // Every case ran: 8 image pairs × 2 metrics + 8 mask pairs × 2 metrics; for each data set
-    // 2 scenes × 4 segmentation scores and the summary's 4 means and 4 standard deviations; for
-    // the streets' split, the first scene's 2 × 3 fields and the summary's 2 × 3.
+    // 2 scenes × 4 segmentation scores and the summary's 4 means and 4 standard deviations, and
+    // (2 scenes + the summary) × 2 region PSNRs; for the streets' split, the first scene's 2 × 3
+    // fields and the summary's 2 × 3.
     assert_eq!(
         stdout.lines().filter(|l| l.ends_with(" ok")).count(),
-        32 + 2 * (8 + 8) + 6 + 6,
+        32 + 2 * (8 + 8 + 6) + 6 + 6,
         "{stdout}"
     );
     assert_eq!(

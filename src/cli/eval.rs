@@ -40,7 +40,9 @@ population standard deviation over those scenes is reported as NAME_std. --seeds
 evaluation with N encoding seeds (S, S + 1000, ...): each score is then the mean of the runs' \
 means, NAME_seed_std the standard deviation of the runs' means, and per_seed lists each run's \
 summary. Also reported: input_psnr \
-(view 0's reconstruction), fg_share (share of ground-truth object pixels won by foreground \
+(view 0's reconstruction), object_psnr and background_psnr (the novel views' PSNR over their \
+ground-truth object pixels and over the rest, each averaged over the views where its region has \
+pixels), fg_share (share of ground-truth object pixels won by foreground \
 slots), slots_used (foreground slots that win a pixel of view 0) and slots_kept (foreground slots in the encoding, after --redundant dropped those view 0 does not need). Where some scored views show a single object, whose FG-ARI is all or nothing (0 as soon as two \
 labels share its pixels), the FG-ARI is also split: fg_ari_multi and nv_fg_ari_multi over the views \
 with two objects or more, lone_object_views and nv_lone_object_views counting the single-object \

@@ -18,7 +18,10 @@ over the views, nv_fg_ari = the novel views' FG-ARI, averaged; then the means ov
 their population standard deviations (np.std), the summary's NAME and NAME_std. Where some
 view shows a single object (a city street), also the FG-ARI split by objects in view
 (fg_ari_multi, lone_object_views, lone_object_whole_share and their nv_ forms; docs/eval.md),
-recomputed the same way; elsewhere, that none of it is written.
+recomputed the same way; elsewhere, that none of it is written. And object_psnr and
+background_psnr, the novel views' PSNR over the ground-truth object pixels and over the rest,
+recomputed with skimage from the saved 8-bit renders (to 0.05 dB: colf-eval scores its renders
+before they are rounded).
 
 Exits 1 on any disagreement, naming the case.
 """
@@ -137,7 +140,7 @@ def dataset_check(binary, work, data, failures):
         sys.exit(f"{data}: the dataset check needs at least 2 scenes, found {len(rows)}")
     names = ("ari", "fg_ari", "nv_ari", "nv_fg_ari")
     per_scene = {name: [] for name in names}
-    lone_rows = []
+    lone_rows, region_rows = [], []
     for row in rows:
         scene = row["scene"]
         views = sorted(f for f in os.listdir(os.path.join(data, scene)) if f.endswith(".mask.png"))
@@ -153,6 +156,7 @@ def dataset_check(binary, work, data, failures):
             objects.append(len(np.unique(gt[fg])))
             whole.append(len(np.unique(pred[fg])) == 1)
         lone_rows.append((row, fg_only, objects, whole))
+        region_rows.append(region_psnrs(data, renders, scene, views))
         novel_fg = [x for x in fg_only[1:] if x is not None]
         ref = {
             "ari": full[0],
@@ -173,6 +177,45 @@ def dataset_check(binary, work, data, failures):
         check("dataset-summary", f"{name}_std", doc[f"{name}_std"], float(np.std(per_scene[name])),
               failures)
     lone_check(doc, lone_rows, failures)
+    region_check(doc, rows, region_rows, failures)
+
+
+def region_psnrs(data, renders, scene, views):
+    """One scene's novel views' PSNR over the ground-truth object pixels and over the rest
+    (skimage on the masked values), each averaged over the views where its region has pixels."""
+    regions = {"object_psnr": [], "background_psnr": []}
+    for v, name in enumerate(views[1:], start=1):
+        gt_mask = load_labels(os.path.join(data, scene, name))
+        gt = load_rgb(os.path.join(data, scene, name.replace(".mask.png", ".png"))).reshape(-1, 3)
+        pred = load_rgb(os.path.join(renders, f"{scene}_v{v}.png")).reshape(-1, 3)
+        for key, pixels in (("object_psnr", gt_mask != 0), ("background_psnr", gt_mask == 0)):
+            if pixels.any():
+                regions[key].append(peak_signal_noise_ratio(gt[pixels], pred[pixels], data_range=1.0))
+    return {k: float(np.mean(v)) if v else None for k, v in regions.items()}
+
+
+def region_check(doc, rows, region_rows, failures):
+    """object_psnr and background_psnr recomputed from the saved renders. Those are 8-bit, while
+    colf-eval scores its renders before they are rounded, so the tolerance is 0.05 dB: a wrong
+    region or a wrong average moves the numbers by far more."""
+    tol = 0.05
+    for key in ("object_psnr", "background_psnr"):
+        means = []
+        for row, ref in zip(rows, region_rows):
+            ours = row.get(key)
+            same = (ours is None) == (ref[key] is None) and (ours is None or abs(ours - ref[key]) <= tol)
+            print(f"{row['scene']:28s} {key:13s} colf={ours!s:24s} reference={ref[key]!s:24s} "
+                  f"{'ok' if same else 'MISMATCH'}")
+            if not same:
+                failures.append(f"{row['scene']} {key}")
+            if ref[key] is not None:
+                means.append(ref[key])
+        ours, ref = doc.get(key), float(np.mean(means))
+        same = ours is not None and abs(ours - ref) <= tol
+        print(f"{'dataset-summary':28s} {key:13s} colf={ours!s:24s} reference={ref!s:24s} "
+              f"{'ok' if same else 'MISMATCH'}")
+        if not same:
+            failures.append(f"dataset-summary {key}")
 
 
 def lone_check(doc, lone_rows, failures):
