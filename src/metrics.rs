@@ -49,15 +49,18 @@ fn check_pair(pred: &[f32], gt: &[f32]) -> Result<()> {
 /// Mean squared error between two equally long value arrays.
 pub fn mse(pred: &[f32], gt: &[f32]) -> Result<f64> {
     check_pair(pred, gt)?;
-    let sum: f64 = pred
-        .iter()
+    Ok(squared_error(pred, gt) / pred.len() as f64)
+}
+
+/// Sum of squared differences, in f64.
+fn squared_error(pred: &[f32], gt: &[f32]) -> f64 {
+    pred.iter()
         .zip(gt)
         .map(|(&a, &b)| {
             let d = a as f64 - b as f64;
             d * d
         })
-        .sum();
-    Ok(sum / pred.len() as f64)
+        .sum()
 }
 
 /// Peak signal-to-noise ratio in dB for values in [0, 1] (data range 1), as scikit-image's
@@ -93,10 +96,7 @@ pub fn region_psnr(
         .zip(inside)
     {
         let sum = &mut sums[usize::from(!is_in)];
-        for (&x, &y) in a.iter().zip(b) {
-            let d = x as f64 - y as f64;
-            sum[0] += d * d;
-        }
+        sum[0] += squared_error(a, b);
         sum[1] += channels as f64;
     }
     let region = |[squared, n]: [f64; 2]| (n > 0.0).then(|| psnr_from_mse(squared / n));

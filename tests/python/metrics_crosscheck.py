@@ -69,11 +69,11 @@ def run(binary, *args):
     return json.loads(out.stdout)
 
 
-def check(case, name, ours, ref, failures):
+def check(case, name, ours, ref, failures, tol=TOL):
     if ref is None or ours is None or not np.isfinite(ref):
         same = (ours is None) and (ref is None or not np.isfinite(ref))
     else:
-        same = abs(ours - ref) <= TOL
+        same = abs(ours - ref) <= tol
     status = "ok" if same else "MISMATCH"
     print(f"{case:28s} {name:13s} colf={ours!s:24s} reference={ref!s:24s} {status}")
     if not same:
@@ -202,20 +202,10 @@ def region_check(doc, rows, region_rows, failures):
     for key in ("object_psnr", "background_psnr"):
         means = []
         for row, ref in zip(rows, region_rows):
-            ours = row.get(key)
-            same = (ours is None) == (ref[key] is None) and (ours is None or abs(ours - ref[key]) <= tol)
-            print(f"{row['scene']:28s} {key:13s} colf={ours!s:24s} reference={ref[key]!s:24s} "
-                  f"{'ok' if same else 'MISMATCH'}")
-            if not same:
-                failures.append(f"{row['scene']} {key}")
+            check(row["scene"], key, row.get(key), ref[key], failures, tol)
             if ref[key] is not None:
                 means.append(ref[key])
-        ours, ref = doc.get(key), float(np.mean(means))
-        same = ours is not None and abs(ours - ref) <= tol
-        print(f"{'dataset-summary':28s} {key:13s} colf={ours!s:24s} reference={ref!s:24s} "
-              f"{'ok' if same else 'MISMATCH'}")
-        if not same:
-            failures.append(f"dataset-summary {key}")
+        check("dataset-summary", key, doc.get(key), float(np.mean(means)), failures, tol)
 
 
 def lone_check(doc, lone_rows, failures):
