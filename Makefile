@@ -12,7 +12,7 @@ BINS := $(patsubst bin/%.rs,%,$(wildcard bin/colf-*.rs))
 MODELS := models/default.safetensors models/supervised.safetensors models/blender.safetensors
 DEMO := out/demo
 
-.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide model-city-then-room-diverse resume model-room-chair model-room-diverse data-room-chair data-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
+.PHONY: all build test pyenv lint man demo demo-blender model model-blender data-unsupervised model-unsupervised data-both model-both model-small model-default data-paper model-paper model-paper-wide resume model-room-chair model-room-diverse data-room-chair data-room-diverse model-city demo-city demo-room eval-sheet bench bench-train tradeoff fuzz install uninstall clean
 
 all: build
 
@@ -558,23 +558,13 @@ model-paper-wide: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with the threads its entry
 # names (TARGET:LOG[:THREADS], one unless given), its output appended to its log. Run it at the
-# start of every session. RESUME_RUNS lists them: the city, then Room-Diverse
-# (model-city-then-room-diverse; the city is done, so it passes on to Room-Diverse), and the
-# room-chair run, one a core (docs/training-log.md says how the cores were split; the city's c2
-# had both, two threads: 1.44x one thread's steps, measured on c1's recipe).
-RESUME_RUNS ?= model-city-then-room-diverse:$(CITY_RUN)/then-room-diverse.log \
-  model-room-chair:$(ROOM_RUN)/room-chair.log
+# start of every session. RESUME_RUNS lists them: the two room sets, one a core
+# (docs/training-log.md says how the cores were split). The city (make model-city) is done; until
+# 2026-12-02 Room-Diverse waited for it on one core's queue.
+RESUME_RUNS ?= model-room-chair:$(ROOM_RUN)/room-chair.log \
+  model-room-diverse:$(ROOM_RUN)/room-diverse.log
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
-
-# One core's queue: the city from the default model (p12's final model in half precision; the
-# paper-sized decoder draws sharper edges than the small model, whose city model left 3-14 % of a
-# lone car's outline to the street: docs/training-log.md, "The city model"), then Room-Diverse,
-# while the room-chair run holds the other core. Until 2026-11-29 the city started from p12's
-# own 32-bit file at the end of make model-paper-wide.
-model-city-then-room-diverse:
-	$(MAKE) model-city
-	$(MAKE) model-room-diverse
 
 # Room-Chair and Room-Diverse (issue 40; docs/training.md, "The room models"): the default
 # clevr567 model (p12's final model: the paper-sized decoder, 384-value slots, a hidden layer per
@@ -587,16 +577,20 @@ model-city-then-room-diverse:
 # wide and floor features (ROOM_WIDE_SETS, below). Held-out: 16 validation scenes (64², then
 # 128²) scored as it trains, 100 test scenes at 128² at the end. Data in
 # $(ROOM_DATA)/PRESET/data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the work tree;
-# re-running resumes. The 64² stage is 8,000 steps, not the paper's 128,000: a step here costs the
+# re-running resumes. The 64² stage is 4,000 steps, not the paper's 128,000: a step here costs the
 # same at either size (the encoder reads 64² in both stages and a step renders 256 rays a view),
 # so 64² steps differ only in their blurred ray targets; the default model was trained at 128²
-# already; and rp6's 64² validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000
-# (docs/training-log.md, twenty-third session), its FG-ARI 0.07-0.09 higher at 128². The steps go
-# to 128², where the targets are scored. The 128² stage is 20,000 steps, not the paper's
-# 90,000: every run of it so far was level from its step 4,000 (validation 22.9-23.1 dB: rp6 to
-# step 10,000, r128w and r128 to 6,000; docs/training-log.md), 90,000 steps are about 27 hours
-# of a core, and this machine lost every run in two of the three sessions before 2026-12-01;
-# the last 6,000 steps decay the rate. Resumed with more --steps, it continues.
+# already; rp6's 64² validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000
+# (docs/training-log.md, twenty-third session), its FG-ARI 0.07-0.09 higher at 128², and
+# Room-Chair's r64 scored 22.98 dB at step 4,000 and 23.59 at its end, 8,000. The steps go to
+# 128², where the targets are scored. The 128² stage is 8,000 steps, not the paper's 90,000:
+# every run of it so far was level from its step 2,000-4,000 (validation 22.8-23.1 dB: rp6 to
+# step 10,000, r128w to 6,000, r128 to 13,000; docs/training-log.md), 90,000 steps are about 27
+# hours of a core, and this machine lost every run in three of the seven sessions from 2026-11-29
+# to 2026-12-02 (the last one with Room-Chair's 128² stage at step 15,900 of 20,000): both stages,
+# about 3.2 hours of a core, must end within a session or two. The last 1,000 steps at 64² and
+# 3,000 at 128² decay the rate. Resumed with more --steps, a stage continues. Until 2026-12-02 the stages
+# were 8,000 and 20,000 steps.
 # Run with one thread beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
@@ -643,11 +637,11 @@ define room_model
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
-	  --steps 8000 --lr 5e-5 --warmup 200 --decay-from 6000 --final-lr 1e-5 --seed $(3) \
+	  --steps 4000 --lr 5e-5 --warmup 200 --decay-from 3000 --final-lr 1e-5 --seed $(3) \
 	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(ROOM_INIT) $(ROOM_WIDE_SETS))
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train128 \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128.safetensors \
-	  --steps 20000 --lr 2e-5 --warmup 100 --decay-from 14000 --final-lr 2e-6 --seed $(3) $(ROOM_R128_SETS_$(1)) \
+	  --steps 8000 --lr 2e-5 --warmup 100 --decay-from 5000 --final-lr 2e-6 --seed $(3) $(ROOM_R128_SETS_$(1)) \
 	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors)
 	$(RELEASE)/colf-train plot $(ROOM_RUN)/$(1)/r64.safetensors.log.jsonl \
 	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl --label 64 --label 128 -o $(ROOM_RUN)/$(1)/training.png
@@ -740,7 +734,7 @@ model-city: build
 	test -f $(CITY_RUN)/c2.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) --data $(CITY_RUN)/data/train \
 	  --eval-data $(CITY_RUN)/data/val --out $(CITY_RUN)/c1.safetensors \
-	  --steps 8000 --lr 5e-5 --warmup 200 --decay-from 6000 --final-lr 1e-5 \
+	  --steps 4000 --lr 5e-5 --warmup 200 --decay-from 3000 --final-lr 1e-5 \
 	  $(call resume_or_init,$(CITY_RUN)/c1.safetensors,$(CITY_RUN)/c0.safetensors) \
 	  $(if $(wildcard $(CITY_RUN)/c1.safetensors.ckpt),,$(CITY_SLOTS))
 	$(RELEASE)/colf-train $(CITY_COMMON) $(CITY_PROPOSALS) $(CITY_CONTEXT) $(CITY_CLAIM) \
