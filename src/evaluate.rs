@@ -23,10 +23,12 @@ use crate::model::Colf;
 use crate::render::output::FrameRender;
 use crate::render::PreparedScene;
 use anyhow::{bail, Context, Result};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+pub mod journal;
 
 /// Scores of one scene. `None` where a score is undefined (no masks, or no foreground pixel).
-#[derive(Clone, Debug, Default, Serialize)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct SceneScores {
     pub scene: String,
     /// Mean PSNR of the novel views (dB).
@@ -75,7 +77,8 @@ pub struct SceneScores {
 /// labels share it, however few pixels the second holds (a street's context view in front of a
 /// row with one car). So a data set with such views also gets the FG-ARI of its views with two
 /// objects or more, and the count of its lone-object views and of those drawn whole.
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
 pub struct LoneObjects {
     /// FG-ARI averaged over the input views that show two objects or more.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -592,18 +595,27 @@ fn objects_one_slot(
 
 /// Evaluates the first `max_scenes` scenes of `data` (all when `None`), encoding and scoring
 /// the views `protocol` names; `on_scene` sees each row as it is done (progress,
-/// per-scene output).
+/// per-scene output). `done` holds the rows of the first scenes, scored before with the same
+/// model and options (a journal's, [`journal`]): those scenes are not scored again.
 pub fn evaluate(
     model: &Colf,
     data: &Dataset,
     max_scenes: Option<usize>,
     protocol: &Protocol,
     opts: &EncodeOptions,
+    done: Vec<SceneScores>,
     mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
 ) -> Result<(DatasetScores, Vec<SceneScores>)> {
     let n = max_scenes.map_or(data.len(), |m| m.min(data.len()));
-    let mut rows = Vec::with_capacity(n);
-    for i in 0..n {
+    if done.len() > n {
+        bail!(
+            "{} scenes were scored before, but there are only {n} to score",
+            done.len()
+        );
+    }
+    let mut rows = done;
+    rows.reserve(n - rows.len());
+    for i in rows.len()..n {
         let scene = data.load(i)?;
         let (codes, renders) = encode_and_render(model, &scene, &protocol.inputs, opts)
             .with_context(|| format!("scene {}", scene.name))?;

@@ -188,6 +188,7 @@ fn help_documents_the_json_of_both_modes() {
         "NAME_std",
         "NAME_seed_std",
         "--seeds",
+        "--journal",
     ] {
         assert!(text.contains(needle), "--help lacks `{needle}`");
     }
@@ -296,4 +297,86 @@ fn seeds_repeat_the_evaluation_and_report_the_spread() {
         2,
         "--seeds",
     );
+}
+
+#[test]
+fn a_journal_resumes_an_evaluation_stopped_part_way() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    Command::cargo_bin("colf-synth")
+        .unwrap()
+        .args([
+            "--scenes", "3", "--seed", "3", "--split", "test", "-q", "--out",
+        ])
+        .arg(&data)
+        .assert()
+        .success();
+    let journal = dir.path().join("test.journal");
+    let run = |extra: &[&str]| {
+        let mut cmd = eval();
+        cmd.arg("--data")
+            .arg(&data)
+            .args(["--fast", "-q", "--per-scene"])
+            .args(extra);
+        json(&mut cmd)
+    };
+    let whole = run(&[]);
+    let with_journal = run(&["--journal", journal.to_str().unwrap()]);
+    assert_eq!(with_journal, whole);
+    let text = std::fs::read_to_string(&journal).unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(lines.len(), 4, "a header and a row a scene: {text}");
+    // Stopped while writing scene 1's row: the header, scene 0's row and a torn line remain.
+    let torn = format!("{}\n{}\n{}", lines[0], lines[1], &lines[2][..20]);
+    std::fs::write(&journal, torn).unwrap();
+    let resumed = eval()
+        .arg("--data")
+        .arg(&data)
+        .args(["--fast", "--per-scene", "--journal"])
+        .arg(&journal)
+        .output()
+        .unwrap();
+    assert!(resumed.status.success(), "{resumed:?}");
+    let progress = String::from_utf8(resumed.stderr).unwrap();
+    assert!(progress.contains("1 scene scored before"), "{progress}");
+    assert!(
+        !progress.contains("1/3"),
+        "scene 0 scored again: {progress}"
+    );
+    assert!(
+        progress.contains("2/3") && progress.contains("3/3"),
+        "{progress}"
+    );
+    let resumed: serde_json::Value = serde_json::from_slice(&resumed.stdout).unwrap();
+    assert_eq!(
+        resumed, whole,
+        "a resumed evaluation prints what an unbroken one does"
+    );
+    assert_eq!(std::fs::read_to_string(&journal).unwrap(), text);
+    // Another evaluation (one encoding try more) refuses the journal and leaves it as it is.
+    fails_with(
+        eval()
+            .arg("--data")
+            .arg(&data)
+            .args(["--tries", "2", "--refine", "0", "--journal"])
+            .arg(&journal),
+        "eval",
+        1,
+        "belongs to another evaluation (encoding differs)",
+    );
+    assert_eq!(std::fs::read_to_string(&journal).unwrap(), text);
+    // A file that is no journal is refused, untouched.
+    let notes = dir.path().join("notes.txt");
+    std::fs::write(&notes, "not a journal\n").unwrap();
+    fails_with(
+        eval()
+            .arg("--data")
+            .arg(&data)
+            .args(["--fast", "--journal"])
+            .arg(&notes),
+        "eval",
+        1,
+        "line 1 is not a colf-eval journal's header",
+    );
+    assert_eq!(std::fs::read_to_string(&notes).unwrap(), "not a journal\n");
 }

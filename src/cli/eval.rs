@@ -52,7 +52,12 @@ colf-encode would: with the model's default encoding (its slots, tries and refin
 view 0, see colf-encode(1); view 0 only, so the novel views stay unseen), or as --slots, \
 --tries, --refine and --fast (one pass) say. The JSON records slots, tries, refine_steps, redundant_mse and, \
 when refining, the refine settings. The JSON object goes to stdout; --per-scene adds a `per_scene` array, --renders DIR writes each scene's renders and \
-masks for inspection, and a progress line per scene goes to stderr (-q silences it).\n\n\
+masks for inspection, and a progress line per scene goes to stderr (-q silences it). \
+--journal FILE appends each scene's scores to FILE (JSON lines: a header naming the model, data \
+and options, then one row a scene) as soon as the scene is done; run again with the same \
+arguments, colf-eval reads the rows back, scores only the scenes after them and prints the \
+same JSON as a run that was never stopped (--renders then holds only the scenes of the later \
+run). A journal written for another model, data set or options is refused, not overwritten.\n\n\
 --input-views 0,1,2 encodes those views of each scene together, as colf-encode does with \
 several images (each view encoded, slots drawing the same object matched into one, all views \
 refined at once, by default with twice the model's refinement steps): input_psnr, ARI and FG-ARI are then averaged over the input views, PSNR, \
@@ -67,6 +72,7 @@ colf-eval masks renders/frame_0000.mask.png data/scene_00000/view_001.mask.png\n
 colf-eval images a.png b.png | jq .psnr\n  \
 colf-eval --data data/test --scenes 100 > metrics.json\n  \
 colf-eval --data data/test --fast > one-pass.json\n  \
+colf-eval --data data/test --journal test.journal > metrics.json\n  \
 colf-eval --data data/test --input-views 0,1,2 --novel-views 3 > three-views.json",
     args_conflicts_with_subcommands = true,
     arg_required_else_help = true
@@ -124,6 +130,12 @@ pub struct EvalArgs {
     /// Write every scene's renders (SCENE_vN.png, SCENE_vN.mask.png) into this folder.
     #[arg(long, value_name = "DIR", requires = "data")]
     pub renders: Option<std::path::PathBuf>,
+
+    /// Append each scene's scores to this journal as it is done, and on a later run with the
+    /// same model, data and options continue after the scenes it holds (a long evaluation
+    /// stopped part way resumes). A journal of another evaluation is refused.
+    #[arg(long, value_name = "FILE", requires = "data")]
+    pub journal: Option<std::path::PathBuf>,
 
     /// No progress lines on stderr.
     #[arg(short, long, requires = "data")]
@@ -228,6 +240,64 @@ fn write_renders(
     Ok(())
 }
 
+/// What a journal's rows were scored with: a journal is only read back by the same evaluation
+/// (the encoding seed is each row's own).
+fn journal_identity(
+    args: &EvalArgs,
+    data: &std::path::Path,
+    model: &crate::model::Colf,
+    scenes: usize,
+) -> Result<serde_json::Value> {
+    let options = args.fit.encode_options_for_views(
+        model.config(),
+        args.slots,
+        args.seed,
+        args.input_views.len(),
+    );
+    let data = std::fs::canonicalize(data).unwrap_or_else(|_| data.to_path_buf());
+    Ok(serde_json::json!({
+        "colf": env!("CARGO_PKG_VERSION"),
+        "data": data.display().to_string(),
+        "model": model.identity()?,
+        "scenes": scenes,
+        "seed": args.seed,
+        "seeds": args.seeds,
+        "input_views": args.input_views,
+        "novel_views": args.novel_views,
+        "encoding": {
+            "slots": options.num_slots,
+            "prune_mass": options.prune_mass,
+            "tries": options.tries,
+            "refine": options.refine,
+            "redundant_mse": options.redundant_mse,
+            "agreed_slots": options.agreed_slots,
+            "triangulate_steps": options.triangulate_steps,
+        },
+    }))
+}
+
+/// Takes the journal's rows of the run with encoding seed `seed` out of `rows`: they must be the
+/// first scenes, in order (a journal is written one scene after the other).
+fn take_run_rows(
+    rows: &mut Vec<crate::evaluate::journal::JournalRow>,
+    seed: u64,
+    journal: Option<&std::path::Path>,
+) -> Result<Vec<crate::evaluate::SceneScores>> {
+    let (mine, rest): (Vec<_>, Vec<_>) = std::mem::take(rows)
+        .into_iter()
+        .partition(|r| r.seed == seed);
+    *rows = rest;
+    if let Some(pos) = mine.iter().enumerate().position(|(i, r)| r.index != i) {
+        bail!(
+            "{}: row {} of seed {seed} is scene {}, not scene {pos}: the journal is out of order",
+            journal.map_or("journal".into(), |p| p.display().to_string()),
+            pos + 1,
+            mine[pos].index
+        );
+    }
+    Ok(mine.into_iter().map(|r| r.scores).collect())
+}
+
 /// `colf-eval --data DIR`: the uORF protocol over a dataset; returns the JSON text.
 fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let dataset = crate::dataset::Dataset::open(data)?;
@@ -247,8 +317,25 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             .with_context(|| format!("{}: cannot create the folder", dir.display()))?;
     }
     let total = args.scenes.map_or(dataset.len(), |n| n.min(dataset.len()));
+    let (mut journal, mut journal_rows) = match &args.journal {
+        Some(path) => {
+            let identity = journal_identity(args, data, &model, total)?;
+            let (journal, rows) = crate::evaluate::journal::Journal::open(path, &identity)?;
+            if !args.quiet && !rows.is_empty() {
+                eprintln!(
+                    "colf-eval: {}: {} scene{} scored before, not scored again",
+                    path.display(),
+                    rows.len(),
+                    if rows.len() == 1 { "" } else { "s" }
+                );
+            }
+            (Some(journal), rows)
+        }
+        None => (None, Vec::new()),
+    };
     let started = std::time::Instant::now();
     let mut render_error = None;
+    let mut journal_error = None;
     let mut runs = Vec::new();
     let mut all_rows = Vec::new();
     for run in 0..args.seeds as u64 {
@@ -259,17 +346,29 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             seed,
             args.input_views.len(),
         );
+        let done = take_run_rows(&mut journal_rows, seed, args.journal.as_deref())?;
         let (scores, rows) = crate::evaluate::evaluate(
             &model,
             &dataset,
             args.scenes,
             &protocol,
             &options,
+            done,
             |i, row, renders| {
                 // The first run's renders: what --renders shows.
                 if let (Some(dir), 0) = (&args.renders, run) {
                     if let Err(e) = write_renders(dir, &row.scene, renders) {
                         render_error.get_or_insert(e);
+                    }
+                }
+                if let (Some(journal), None) = (&mut journal, &journal_error) {
+                    let entry = crate::evaluate::journal::JournalRow {
+                        seed,
+                        index: i,
+                        scores: row.clone(),
+                    };
+                    if let Err(e) = journal.append(&entry) {
+                        journal_error = Some(e);
                     }
                 }
                 if !args.quiet {
@@ -290,7 +389,7 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
                 }
             },
         )?;
-        if let Some(e) = render_error.take() {
+        if let Some(e) = render_error.take().or(journal_error.take()) {
             return Err(e);
         }
         runs.push((seed, scores));

@@ -811,6 +811,7 @@ impl Trainer {
                 novel: None,
             },
             &crate::encode::EncodeOptions::one_pass(self.num_slots),
+            Vec::new(),
             |_, _, _| {},
         )?;
         Ok(Some(scores))
