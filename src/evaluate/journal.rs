@@ -148,6 +148,12 @@ mod tests {
         serde_json::json!({"model": model, "data": "val", "scenes": 3})
     }
 
+    /// Appends `bytes` to the file at `path` as another writer (a killed run, a stray edit) would.
+    fn append_raw(path: &Path, bytes: &[u8]) {
+        let mut f = std::fs::OpenOptions::new().append(true).open(path).unwrap();
+        f.write_all(bytes).unwrap();
+    }
+
     fn row(index: usize, psnr: f64) -> JournalRow {
         JournalRow {
             seed: 0,
@@ -188,12 +194,7 @@ mod tests {
         let (mut journal, _) = Journal::open(&path, &identity("a")).unwrap();
         journal.append(&row(0, 20.0)).unwrap();
         drop(journal);
-        let mut f = std::fs::OpenOptions::new()
-            .append(true)
-            .open(&path)
-            .unwrap();
-        f.write_all(b"{\"seed\":0,\"index\":1,\"sco").unwrap();
-        drop(f);
+        append_raw(&path, b"{\"seed\":0,\"index\":1,\"sco");
         let (mut journal, rows) = Journal::open(&path, &identity("a")).unwrap();
         assert_eq!(rows.len(), 1);
         journal.append(&row(1, 21.0)).unwrap();
@@ -234,12 +235,7 @@ mod tests {
         let path = dir.path().join("bad-row.jsonl");
         let (journal, _) = Journal::open(&path, &identity("a")).unwrap();
         drop(journal);
-        let mut f = std::fs::OpenOptions::new()
-            .append(true)
-            .open(&path)
-            .unwrap();
-        f.write_all(b"[1, 2]\n").unwrap();
-        drop(f);
+        append_raw(&path, b"[1, 2]\n");
         let err = Journal::open(&path, &identity("a"))
             .err()
             .unwrap()
