@@ -595,7 +595,7 @@ fn objects_one_slot(
 
 /// Evaluates the first `max_scenes` scenes of `data` (all when `None`), encoding and scoring
 /// the views `protocol` names; `on_scene` sees each row as it is done (progress,
-/// per-scene output). `done` holds the rows of the first scenes, scored before with the same
+/// per-scene output, a journal); its error stops the evaluation at once. `done` holds the rows of the first scenes, scored before with the same
 /// model and options (a journal's, [`journal`]): those scenes are not scored again.
 pub fn evaluate(
     model: &Colf,
@@ -604,7 +604,7 @@ pub fn evaluate(
     protocol: &Protocol,
     opts: &EncodeOptions,
     done: Vec<SceneScores>,
-    mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]),
+    mut on_scene: impl FnMut(usize, &SceneScores, &[FrameRender]) -> Result<()>,
 ) -> Result<(DatasetScores, Vec<SceneScores>)> {
     let n = max_scenes.map_or(data.len(), |m| m.min(data.len()));
     if done.len() > n {
@@ -621,7 +621,7 @@ pub fn evaluate(
             .with_context(|| format!("scene {}", scene.name))?;
         let mut row = score_scene(&scene, &renders, protocol)?;
         row.slots_kept = codes.slots.len();
-        on_scene(i, &row, &renders);
+        on_scene(i, &row, &renders)?;
         rows.push(row);
     }
     Ok((DatasetScores::from_scenes(&rows), rows))

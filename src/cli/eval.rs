@@ -334,8 +334,6 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         None => (None, Vec::new()),
     };
     let started = std::time::Instant::now();
-    let mut render_error = None;
-    let mut journal_error = None;
     let mut runs = Vec::new();
     let mut all_rows = Vec::new();
     for run in 0..args.seeds as u64 {
@@ -357,19 +355,14 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             |i, row, renders| {
                 // The first run's renders: what --renders shows.
                 if let (Some(dir), 0) = (&args.renders, run) {
-                    if let Err(e) = write_renders(dir, &row.scene, renders) {
-                        render_error.get_or_insert(e);
-                    }
+                    write_renders(dir, &row.scene, renders)?;
                 }
-                if let (Some(journal), None) = (&mut journal, &journal_error) {
-                    let entry = crate::evaluate::journal::JournalRow {
+                if let Some(journal) = &mut journal {
+                    journal.append(&crate::evaluate::journal::JournalRow {
                         seed,
                         index: i,
                         scores: row.clone(),
-                    };
-                    if let Err(e) = journal.append(&entry) {
-                        journal_error = Some(e);
-                    }
+                    })?;
                 }
                 if !args.quiet {
                     let show = |v: Option<f64>| v.map_or("-".to_string(), |x| format!("{x:.3}"));
@@ -387,11 +380,9 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
                         started.elapsed().as_secs_f64()
                     );
                 }
+                Ok(())
             },
         )?;
-        if let Some(e) = render_error.take().or(journal_error.take()) {
-            return Err(e);
-        }
         runs.push((seed, scores));
         all_rows.extend(rows);
     }

@@ -812,7 +812,7 @@ impl Trainer {
             },
             &crate::encode::EncodeOptions::one_pass(self.num_slots),
             Vec::new(),
-            |_, _, _| {},
+            |_, _, _| Ok(()),
         )?;
         Ok(Some(scores))
     }
