@@ -595,8 +595,9 @@ fn objects_one_slot(
 
 /// Evaluates the first `max_scenes` scenes of `data` (all when `None`), encoding and scoring
 /// the views `protocol` names; `on_scene` sees each row as it is done (progress,
-/// per-scene output, a journal); its error stops the evaluation at once. `done` holds the rows of the first scenes, scored before with the same
-/// model and options (a journal's, [`journal`]): those scenes are not scored again.
+/// per-scene output, a journal); its error stops the evaluation at once. `done` holds the rows
+/// of the first scenes, scored before with the same model and options (a journal's,
+/// [`journal`]): those scenes are not scored again.
 pub fn evaluate(
     model: &Colf,
     data: &Dataset,

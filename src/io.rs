@@ -393,14 +393,21 @@ pub fn open_log_in_folder(path: &Path) -> Result<std::fs::File> {
     }
     let mut options = std::fs::OpenOptions::new();
     options.create(true).append(true);
+    open_no_follow(&mut options, path).with_context(|| format!("{shown}: cannot open the log"))
+}
+
+/// Opens `path` with `options` without following a link at `path` itself (a planted link is an
+/// error, not a way to write elsewhere).
+pub fn open_no_follow(
+    options: &mut std::fs::OpenOptions,
+    path: &Path,
+) -> std::io::Result<std::fs::File> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::OpenOptionsExt;
         options.custom_flags(libc::O_NOFOLLOW);
     }
-    options
-        .open(path)
-        .with_context(|| format!("{shown}: cannot open the log"))
+    options.open(path)
 }
 
 /// Checks, before a long run, that [`write_atomic`] will be able to write `path`: it is not a

@@ -240,20 +240,15 @@ fn write_renders(
     Ok(())
 }
 
-/// What a journal's rows were scored with: a journal is only read back by the same evaluation
-/// (the encoding seed is each row's own).
+/// What a journal's rows were scored with (`options`: the first run's encoding): a journal is
+/// only read back by the same evaluation (the encoding seed is each row's own).
 fn journal_identity(
     args: &EvalArgs,
     data: &std::path::Path,
     model: &crate::model::Colf,
     scenes: usize,
+    options: &crate::encode::EncodeOptions,
 ) -> Result<serde_json::Value> {
-    let options = args.fit.encode_options_for_views(
-        model.config(),
-        args.slots,
-        args.seed,
-        args.input_views.len(),
-    );
     let data = std::fs::canonicalize(data).unwrap_or_else(|_| data.to_path_buf());
     Ok(serde_json::json!({
         "colf": env!("CARGO_PKG_VERSION"),
@@ -317,9 +312,14 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
             .with_context(|| format!("{}: cannot create the folder", dir.display()))?;
     }
     let total = args.scenes.map_or(dataset.len(), |n| n.min(dataset.len()));
+    let views = args.input_views.len();
+    // The first run's encoding (seed S), as the JSON records it.
+    let options = args
+        .fit
+        .encode_options_for_views(model.config(), args.slots, args.seed, views);
     let (mut journal, mut journal_rows) = match &args.journal {
         Some(path) => {
-            let identity = journal_identity(args, data, &model, total)?;
+            let identity = journal_identity(args, data, &model, total, &options)?;
             let (journal, rows) = crate::evaluate::journal::Journal::open(path, &identity)?;
             if !args.quiet && !rows.is_empty() {
                 eprintln!(
@@ -338,19 +338,16 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
     let mut all_rows = Vec::new();
     for run in 0..args.seeds as u64 {
         let seed = args.seed.wrapping_add(run * SEED_STRIDE);
-        let options = args.fit.encode_options_for_views(
-            model.config(),
-            args.slots,
-            seed,
-            args.input_views.len(),
-        );
+        let run_options =
+            args.fit
+                .encode_options_for_views(model.config(), args.slots, seed, views);
         let done = take_run_rows(&mut journal_rows, seed, args.journal.as_deref())?;
         let (scores, rows) = crate::evaluate::evaluate(
             &model,
             &dataset,
             args.scenes,
             &protocol,
-            &options,
+            &run_options,
             done,
             |i, row, renders| {
                 // The first run's renders: what --renders shows.
@@ -386,10 +383,6 @@ fn eval_dataset(args: &EvalArgs, data: &std::path::Path) -> Result<String> {
         runs.push((seed, scores));
         all_rows.extend(rows);
     }
-    let views = args.input_views.len();
-    let options = args
-        .fit
-        .encode_options_for_views(model.config(), args.slots, args.seed, views);
     let encoding = args
         .fit
         .encoding_for_views(model.config(), args.slots, views);

@@ -47,13 +47,7 @@ impl Journal {
         }
         let mut options = std::fs::OpenOptions::new();
         options.create(true).read(true).write(true);
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::OpenOptionsExt;
-            options.custom_flags(libc::O_NOFOLLOW);
-        }
-        let mut file = options
-            .open(path)
+        let mut file = crate::io::open_no_follow(&mut options, path)
             .with_context(|| format!("{shown}: cannot open the journal"))?;
         let mut text = String::new();
         file.read_to_string(&mut text)
