@@ -141,16 +141,18 @@ demo-room: build
 # A contact sheet of held-out scenes (issue 37): per scene a row of its four ground-truth views
 # then the model's renders of them (view 0 encoded with the model's default encoding, views 1–3
 # novel), and below it a row of their masks (ground truth, then one colour a slot). SHEET_MODEL
-# on SHEET_SCENES test scenes at 128² from SHEET_ENGINE (blender, the default, or analytic);
-# colf-eval's scores of those scenes in $(SHEET_DIR)/eval.json; the sheet is SHEET_OUT.
+# on SHEET_SCENES test scenes at 128² from SHEET_ENGINE (blender, the default, or analytic) with
+# SHEET_SYNTH's further colf-synth flags (e.g. --preset room-chair); colf-eval's scores of those
+# scenes in $(SHEET_DIR)/eval.json; the sheet is SHEET_OUT.
 SHEET_ENGINE ?= blender
 SHEET_MODEL ?= models/default.safetensors
 SHEET_SCENES ?= 3
+SHEET_SYNTH ?=
 SHEET_DIR := out/eval-sheet
 SHEET_OUT ?= $(SHEET_DIR)/sheet.png
 eval-sheet: build
 	$(RELEASE)/colf-synth --engine $(SHEET_ENGINE) --split test --size 128 --scenes $(SHEET_SCENES) \
-	  --out $(SHEET_DIR)/data -q --force
+	  $(SHEET_SYNTH) --out $(SHEET_DIR)/data -q --force
 	$(RELEASE)/colf-eval --data $(SHEET_DIR)/data --model $(SHEET_MODEL) \
 	  --renders $(SHEET_DIR)/renders > $(SHEET_DIR)/eval.json
 	$(RELEASE)/colf-sheet --cols 8 --scale 2 -o $(SHEET_OUT) $$(for s in $$(ls $(SHEET_DIR)/data | grep '^scene_'); do \
@@ -563,11 +565,10 @@ model-paper-wide: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with the threads its entry
 # names (TARGET:LOG[:THREADS], one unless given), its output appended to its log. Run it at the
-# start of every session. RESUME_RUNS lists them: the two room sets, one a core
-# (docs/training-log.md says how the cores were split). The city (make model-city) is done; until
-# 2026-12-02 Room-Diverse waited for it on one core's queue.
-RESUME_RUNS ?= model-room-chair:$(ROOM_RUN)/room-chair.log \
-  model-room-diverse:$(ROOM_RUN)/room-diverse.log
+# start of every session. RESUME_RUNS lists them: one room set on both cores, since a set must
+# end within the session that starts it (below; docs/training-log.md says how the cores were
+# split). Until 2026-12-02 the two room sets ran side by side, one a core.
+RESUME_RUNS ?= model-room-chair:$(ROOM_RUN)/room-chair.log:2
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
@@ -582,20 +583,23 @@ resume:
 # wide and floor features (ROOM_WIDE_SETS, below). Held-out: 16 validation scenes (64², then
 # 128²) scored as it trains, 100 test scenes at 128² at the end. Data in
 # $(ROOM_DATA)/PRESET/data, checkpoints and logs in $(ROOM_RUN)/PRESET, outside the work tree;
-# re-running resumes. The 64² stage is 4,000 steps, not the paper's 128,000: a step here costs the
+# re-running resumes. The 64² stage is 2,000 steps, not the paper's 128,000: a step here costs the
 # same at either size (the encoder reads 64² in both stages and a step renders 256 rays a view),
 # so 64² steps differ only in their blurred ray targets; the default model was trained at 128²
 # already; rp6's 64² validation PSNR was level (23.05–23.41 dB) from step 6,000 to 16,000
 # (docs/training-log.md, twenty-third session), its FG-ARI 0.07-0.09 higher at 128², and
 # Room-Chair's r64 scored 22.98 dB at step 4,000 and 23.59 at its end, 8,000. The steps go to
-# 128², where the targets are scored. The 128² stage is 8,000 steps, not the paper's 90,000:
+# 128², where the targets are scored. The 128² stage is 3,000 steps, not the paper's 90,000:
 # every run of it so far was level from its step 2,000-4,000 (validation 22.8-23.1 dB: rp6 to
 # step 10,000, r128w to 6,000, r128 to 13,000; docs/training-log.md), 90,000 steps are about 27
 # hours of a core, and this machine lost every run in three of the seven sessions from 2026-11-29
-# to 2026-12-02 (the last one with Room-Chair's 128² stage at step 15,900 of 20,000): both stages,
-# about 3.2 hours of a core, must end within a session or two. The last 1,000 steps at 64² and
-# 3,000 at 128² decay the rate. Resumed with more --steps, a stage continues. Until 2026-12-02 the stages
-# were 8,000 and 20,000 steps.
+# to 2026-12-02 (the last one with Room-Chair's 128² stage at step 15,900 of 20,000), and then in
+# every session: a room set's data, both stages and its test scores must end within one session
+# (3 hours), so a run takes both cores (make resume's RESUME_RUNS, two threads: 0.7-1.2 s a
+# step on 2026-12-02, the machine's CPU shared with others) and one set trains a session. The
+# last 500 steps at 64² and 1,000 at 128² decay the rate. Resumed with more --steps, a stage
+# continues. Until 2026-12-02 the stages were 8,000 and 20,000 steps, then 4,000 and 8,000 for
+# one session.
 # Run with one thread beside the other long run:
 #   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
@@ -642,11 +646,11 @@ define room_model
 	test -f $(ROOM_RUN)/$(1)/r128.safetensors.ckpt || \
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val --out $(ROOM_RUN)/$(1)/r64.safetensors \
-	  --steps 4000 --lr 5e-5 --warmup 200 --decay-from 3000 --final-lr 1e-5 --seed $(3) \
+	  --steps 2000 --lr 5e-5 --warmup 200 --decay-from 1500 --final-lr 1e-5 --seed $(3) \
 	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r64.safetensors,$(ROOM_INIT) $(ROOM_WIDE_SETS))
 	$(RELEASE)/colf-train $(ROOM_COMMON) --data $(ROOM_DATA)/$(1)/data/train128 \
 	  --eval-data $(ROOM_DATA)/$(1)/data/val128 --out $(ROOM_RUN)/$(1)/r128.safetensors \
-	  --steps 8000 --lr 2e-5 --warmup 100 --decay-from 5000 --final-lr 2e-6 --seed $(3) $(ROOM_R128_SETS_$(1)) \
+	  --steps 3000 --lr 2e-5 --warmup 100 --decay-from 2000 --final-lr 2e-6 --seed $(3) $(ROOM_R128_SETS_$(1)) \
 	  $(call resume_or_init,$(ROOM_RUN)/$(1)/r128.safetensors,$(ROOM_RUN)/$(1)/r64.safetensors)
 	$(RELEASE)/colf-train plot $(ROOM_RUN)/$(1)/r64.safetensors.log.jsonl \
 	  $(ROOM_RUN)/$(1)/r128.safetensors.log.jsonl --label 64 --label 128 -o $(ROOM_RUN)/$(1)/training.png
