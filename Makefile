@@ -567,8 +567,9 @@ model-paper-wide: build
 # names (TARGET:LOG[:THREADS], one unless given), its output appended to its log. Run it at the
 # start of every session. RESUME_RUNS lists them: one room set on both cores, since a set must
 # end within the session that starts it (below; docs/training-log.md says how the cores were
-# split). Until 2026-12-02 the two room sets ran side by side, one a core.
-RESUME_RUNS ?= model-room-chair:$(ROOM_RUN)/room-chair.log:2
+# split). Until 2026-12-02 the two room sets ran side by side, one a core. Room-Chair ended on
+# 2026-12-02 (its scores are in docs/results/rooms/); Room-Diverse is next.
+RESUME_RUNS ?= model-room-diverse:$(ROOM_RUN)/room-diverse.log:2
 resume:
 	scripts/resume_runs.sh $(RESUME_RUNS)
 
