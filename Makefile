@@ -601,8 +601,8 @@ resume:
 # last 500 steps at 64² and 1,000 at 128² decay the rate. Resumed with more --steps, a stage
 # continues. Until 2026-12-02 the stages were 8,000 and 20,000 steps, then 4,000 and 8,000 for
 # one session.
-# Run with one thread beside the other long run:
-#   RAYON_NUM_THREADS=1 CANDLE_NUM_THREADS=1 nohup make model-room-chair > LOG 2>&1 &
+# Run on both cores (make resume does):
+#   RAYON_NUM_THREADS=2 CANDLE_NUM_THREADS=2 nohup make model-room-chair > LOG 2>&1 &
 ROOM_DATA ?= $(HOME)/colf-runs/rooms
 # A comma inside a $(call) argument.
 comma := ,
