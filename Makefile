@@ -565,11 +565,10 @@ model-paper-wide: build
 # The long training runs (docs/training.md, "Long runs"), restarted where they stopped: each
 # target without a running `make TARGET` is started in the background with the threads its entry
 # names (TARGET:LOG[:THREADS], one unless given), its output appended to its log. Run it at the
-# start of every session. RESUME_RUNS lists them: one room set on both cores, since a set must
-# end within the session that starts it (below; docs/training-log.md says how the cores were
-# split). Until 2026-12-02 the two room sets ran side by side, one a core. Both ended on
-# 2026-12-02 (their scores are in docs/results/rooms/), so none is listed now; an entry reads
-# model-room-diverse:$(ROOM_RUN)/room-diverse.log:2.
+# start of every session. RESUME_RUNS lists them, e.g. model-room-diverse:$(ROOM_RUN)/room-diverse.log:2
+# (a room set on both cores: it must end within the session that starts it, below). None is
+# listed now: the room sets ended on 2026-12-02 (scores in docs/results/rooms/;
+# docs/training-log.md says how the cores were split).
 RESUME_RUNS ?=
 resume:
 	$(if $(strip $(RESUME_RUNS)),scripts/resume_runs.sh $(RESUME_RUNS),@echo "resume: no long run listed (RESUME_RUNS is empty; docs/training.md, Long runs)")
